@@ -1,0 +1,5 @@
+import sys
+
+from vislam.cli import main
+
+sys.exit(main())

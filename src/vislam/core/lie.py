@@ -1,0 +1,270 @@
+"""SO(3) and SE(3) on numpy, batched over leading axes.
+
+Conventions (stated once, used everywhere in vislam)
+-----------------------------------------------------
+* A pose ``a_T_b`` is a 4x4 homogeneous matrix that maps coordinates in frame ``b``
+  into frame ``a``: ``p_in_a = a_T_b @ p_in_b``. Arrays of poses have shape
+  ``(..., 4, 4)``; every function here accepts any number of leading axes.
+* A tangent vector (twist) of se(3) is ordered **(v, ω)**: ``xi = [v_x, v_y, v_z,
+  ω_x, ω_y, ω_z]``, linear part first, as in the report.
+* ``hat(xi)`` is the 4x4 matrix ``[[ω^, v], [0, 0]]``; ``exp(xi) = expm(hat(xi))``.
+* The adjoint satisfies ``T @ exp(xi) @ inv(T) = exp(adjoint(T) @ xi)`` and, in the
+  (v, ω) order, is ``[[R, p^ R], [0, R]]``.
+* ``curly_hat(xi)`` (the report's ``ad``, written u-curly-hat) is ``[[ω^, v^], [0, ω^]]``
+  and satisfies ``expm(curly_hat(xi)) = adjoint(exp(xi))``.
+* ``odot(p)`` for a homogeneous point ``p = [s, λ]`` is the 4x6 matrix
+  ``[[λ I, -s^], [0, 0]]`` with ``hat(xi) @ p = odot(p) @ xi``.
+
+Perturbation side. The filter (``vislam.core.state``) follows the report: its pose
+variable is the *inverse* IMU pose ``imu_T_world`` and it is perturbed on the **left**,
+``imu_T_world = exp(δ) @ mean``, with δ ~ N(0, Σ), Σ 6x6 in the (v, ω) order above.
+The functions in this module are convention-free group operations; the perturbation
+side only matters for Jacobians, which the callers document.
+
+Small angles. Closed forms divide by powers of the rotation angle θ; below
+``SMALL_ANGLE`` a Taylor series is used instead, so exp/log/Jacobians are accurate to
+machine precision for every θ including exactly zero.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "SMALL_ANGLE",
+    "so3_hat",
+    "so3_vee",
+    "so3_exp",
+    "so3_log",
+    "so3_left_jacobian",
+    "so3_left_jacobian_inverse",
+    "se3_hat",
+    "se3_vee",
+    "se3_exp",
+    "se3_log",
+    "se3_inverse",
+    "se3_adjoint",
+    "se3_curly_hat",
+    "se3_odot",
+    "make_pose",
+    "is_rigid_transform",
+]
+
+#: Below this rotation angle (rad) the Taylor branches are used.
+SMALL_ANGLE = 1e-2
+
+
+def _as_float(x) -> np.ndarray:
+    return np.asarray(x, dtype=np.float64)
+
+
+# ----------------------------------------------------------------------------- SO(3)
+
+
+def so3_hat(phi) -> np.ndarray:
+    """(..., 3) axis-angle vector -> (..., 3, 3) skew-symmetric matrix ``phi^``."""
+    phi = _as_float(phi)
+    x, y, z = phi[..., 0], phi[..., 1], phi[..., 2]
+    out = np.zeros(phi.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -z
+    out[..., 0, 2] = y
+    out[..., 1, 0] = z
+    out[..., 1, 2] = -x
+    out[..., 2, 0] = -y
+    out[..., 2, 1] = x
+    return out
+
+
+def so3_vee(Phi) -> np.ndarray:
+    """(..., 3, 3) skew-symmetric matrix -> (..., 3) vector (inverse of :func:`so3_hat`)."""
+    Phi = _as_float(Phi)
+    return np.stack([Phi[..., 2, 1], Phi[..., 0, 2], Phi[..., 1, 0]], axis=-1)
+
+
+def _angle_coefficients(theta: np.ndarray):
+    """Return A = sin θ/θ, B = (1-cos θ)/θ², C = (θ - sin θ)/θ³ with small-angle series."""
+    small = theta < SMALL_ANGLE
+    t = np.where(small, 1.0, theta)  # safe divisor on the small branch
+    t2 = theta * theta
+    A = np.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0 - t2**3 / 5040.0, np.sin(t) / t)
+    B = np.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0 - t2**3 / 40320.0, (1.0 - np.cos(t)) / (t * t))
+    C = np.where(
+        small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0 - t2**3 / 362880.0, (t - np.sin(t)) / (t * t * t)
+    )
+    return A, B, C
+
+
+def so3_exp(phi) -> np.ndarray:
+    """Rodrigues' formula: (..., 3) -> (..., 3, 3) rotation ``R = expm(phi^)``."""
+    phi = _as_float(phi)
+    theta = np.linalg.norm(phi, axis=-1)
+    A, B, _ = _angle_coefficients(theta)
+    K = so3_hat(phi)
+    KK = K @ K
+    return np.eye(3) + A[..., None, None] * K + B[..., None, None] * KK
+
+
+def so3_log(R) -> np.ndarray:
+    """(..., 3, 3) rotation -> (..., 3) axis-angle with angle in [0, π].
+
+    Uses scipy's quaternion-based conversion, which is accurate for every angle
+    including the neighbourhood of π where the trace formula loses precision.
+    """
+    R = _as_float(R)
+    lead = R.shape[:-2]
+    flat = R.reshape(-1, 3, 3)
+    if flat.shape[0] == 0:
+        return np.zeros(lead + (3,))
+    rotvec = Rotation.from_matrix(flat).as_rotvec()
+    return rotvec.reshape(lead + (3,))
+
+
+def so3_left_jacobian(phi) -> np.ndarray:
+    """Left Jacobian of SO(3): ``J = I + B phi^ + C (phi^)^2`` (..., 3, 3)."""
+    phi = _as_float(phi)
+    theta = np.linalg.norm(phi, axis=-1)
+    _, B, C = _angle_coefficients(theta)
+    K = so3_hat(phi)
+    return np.eye(3) + B[..., None, None] * K + C[..., None, None] * (K @ K)
+
+
+def so3_left_jacobian_inverse(phi) -> np.ndarray:
+    """Inverse of :func:`so3_left_jacobian`: ``I - phi^/2 + D (phi^)^2``.
+
+    D = (1 - θ sin θ / (2 (1 - cos θ))) / θ², with its series 1/12 + θ²/720 + θ⁴/30240
+    for small θ. Valid for θ < 2π.
+    """
+    phi = _as_float(phi)
+    theta = np.linalg.norm(phi, axis=-1)
+    small = theta < SMALL_ANGLE
+    t = np.where(small, 1.0, theta)
+    t2 = theta * theta
+    D = np.where(
+        small,
+        1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
+        (1.0 - t * np.sin(t) / (2.0 * (1.0 - np.cos(t)))) / (t * t),
+    )
+    K = so3_hat(phi)
+    return np.eye(3) - 0.5 * K + D[..., None, None] * (K @ K)
+
+
+# ----------------------------------------------------------------------------- SE(3)
+
+
+def se3_hat(xi) -> np.ndarray:
+    """(..., 6) twist (v, ω) -> (..., 4, 4) matrix ``[[ω^, v], [0, 0]]``."""
+    xi = _as_float(xi)
+    out = np.zeros(xi.shape[:-1] + (4, 4))
+    out[..., :3, :3] = so3_hat(xi[..., 3:])
+    out[..., :3, 3] = xi[..., :3]
+    return out
+
+
+def se3_vee(X) -> np.ndarray:
+    """(..., 4, 4) element of se(3) -> (..., 6) twist (v, ω)."""
+    X = _as_float(X)
+    return np.concatenate([X[..., :3, 3], so3_vee(X[..., :3, :3])], axis=-1)
+
+
+def make_pose(R, p) -> np.ndarray:
+    """Assemble (..., 4, 4) poses from rotations (..., 3, 3) and translations (..., 3)."""
+    R = _as_float(R)
+    p = _as_float(p)
+    lead = np.broadcast_shapes(R.shape[:-2], p.shape[:-1])
+    out = np.zeros(lead + (4, 4))
+    out[..., :3, :3] = R
+    out[..., :3, 3] = p
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_exp(xi) -> np.ndarray:
+    """Closed-form exponential: (..., 6) twist (v, ω) -> (..., 4, 4) pose.
+
+    ``exp(xi) = [[R, J v], [0, 1]]`` with R from Rodrigues and J the SO(3) left Jacobian.
+    """
+    xi = _as_float(xi)
+    phi = xi[..., 3:]
+    theta = np.linalg.norm(phi, axis=-1)
+    A, B, C = _angle_coefficients(theta)
+    K = so3_hat(phi)
+    KK = K @ K
+    eye = np.eye(3)
+    R = eye + A[..., None, None] * K + B[..., None, None] * KK
+    J = eye + B[..., None, None] * K + C[..., None, None] * KK
+    return make_pose(R, np.einsum("...ij,...j->...i", J, xi[..., :3]))
+
+
+def se3_log(T) -> np.ndarray:
+    """(..., 4, 4) pose -> (..., 6) twist (v, ω) with rotation angle in [0, π]."""
+    T = _as_float(T)
+    phi = so3_log(T[..., :3, :3])
+    Jinv = so3_left_jacobian_inverse(phi)
+    v = np.einsum("...ij,...j->...i", Jinv, T[..., :3, 3])
+    return np.concatenate([v, phi], axis=-1)
+
+
+def se3_inverse(T) -> np.ndarray:
+    """Exact inverse of (..., 4, 4) rigid transforms: ``[[Rᵀ, -Rᵀ p], [0, 1]]``."""
+    T = _as_float(T)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    return make_pose(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+
+
+def se3_adjoint(T) -> np.ndarray:
+    """(..., 4, 4) pose -> (..., 6, 6) adjoint ``[[R, p^ R], [0, R]]`` for (v, ω) order."""
+    T = _as_float(T)
+    R = T[..., :3, :3]
+    out = np.zeros(T.shape[:-2] + (6, 6))
+    out[..., :3, :3] = R
+    out[..., 3:, 3:] = R
+    out[..., :3, 3:] = so3_hat(T[..., :3, 3]) @ R
+    return out
+
+
+def se3_curly_hat(xi) -> np.ndarray:
+    """The report's ``ad``/curly hat: (..., 6) twist -> (..., 6, 6) ``[[ω^, v^], [0, ω^]]``."""
+    xi = _as_float(xi)
+    out = np.zeros(xi.shape[:-1] + (6, 6))
+    w_hat = so3_hat(xi[..., 3:])
+    out[..., :3, :3] = w_hat
+    out[..., 3:, 3:] = w_hat
+    out[..., :3, 3:] = so3_hat(xi[..., :3])
+    return out
+
+
+def se3_odot(p) -> np.ndarray:
+    """The report's ⊙ operator: (..., 4) homogeneous point [s, λ] -> (..., 4, 6).
+
+    ``[[λ I, -s^], [0ᵀ, 0ᵀ]]``, so that ``se3_hat(xi) @ p = se3_odot(p) @ xi``; hence
+    ``d/dxi exp(xi^) p |_0 = odot(p)``. A (..., 3) input is taken as λ = 1.
+    """
+    p = _as_float(p)
+    if p.shape[-1] == 3:
+        s = p
+        lam = np.ones(p.shape[:-1])
+    else:
+        s = p[..., :3]
+        lam = p[..., 3]
+    out = np.zeros(p.shape[:-1] + (4, 6))
+    out[..., 0, 0] = lam
+    out[..., 1, 1] = lam
+    out[..., 2, 2] = lam
+    out[..., :3, 3:] = -so3_hat(s)
+    return out
+
+
+def is_rigid_transform(T, tol: float = 1e-6) -> bool:
+    """True when ``T`` is a finite 4x4 matrix with a rotation block (RᵀR = I, det R = 1)
+    and last row ``[0, 0, 0, 1]``, each to within ``tol``."""
+    T = np.asarray(T)
+    if T.shape != (4, 4) or not np.issubdtype(T.dtype, np.number) or not np.all(np.isfinite(T)):
+        return False
+    T = T.astype(np.float64)
+    R = T[:3, :3]
+    return bool(
+        np.allclose(R.T @ R, np.eye(3), atol=tol)
+        and abs(np.linalg.det(R) - 1.0) < tol
+        and np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=tol)
+    )

@@ -1,0 +1,193 @@
+"""The in-memory recording every estimator consumes: :class:`Sequence`.
+
+A sequence has T frames. Velocities are IMU-frame body velocities sampled at the frame
+timestamps. Stereo features are stored sparsely, frame by frame (compressed rows), so
+that memory grows with the number of observations, not with landmarks x frames;
+:meth:`StereoObservations.dense` rebuilds the dataset's 4 x M x T array (-1 where a
+landmark is not seen) and :attr:`StereoObservations.observed_mask` the explicit M x T mask.
+
+Landmark ids are the column indices ``j`` of the dataset's feature array.
+
+All arrays are read-only: a Sequence is immutable once built.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from vislam.core.camera import StereoCamera
+
+__all__ = ["StereoObservations", "Sequence", "MISSING_PIXEL"]
+
+#: Value of all four pixel coordinates where a landmark is not observed (dataset format).
+MISSING_PIXEL = -1.0
+
+
+def _frozen(a, dtype) -> np.ndarray:
+    a = np.array(a, dtype=dtype, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class StereoObservations:
+    """Stereo feature observations, sorted by frame.
+
+    Attributes:
+        frame_offsets: (T + 1,) int64; observations of frame t are rows
+            ``frame_offsets[t]:frame_offsets[t + 1]``.
+        landmark_ids: (N,) int64 landmark id (dataset column j) of each observation;
+            strictly increasing within a frame.
+        pixels: (N, 4) float64 ``[uL, vL, uR, vR]`` in pixels of the rectified images.
+        n_landmarks: M, the number of landmark ids (``landmark_ids < M``).
+    """
+
+    frame_offsets: np.ndarray
+    landmark_ids: np.ndarray
+    pixels: np.ndarray
+    n_landmarks: int
+
+    def __post_init__(self):
+        object.__setattr__(self, "frame_offsets", _frozen(self.frame_offsets, np.int64))
+        object.__setattr__(self, "landmark_ids", _frozen(self.landmark_ids, np.int64))
+        object.__setattr__(self, "pixels", _frozen(np.reshape(self.pixels, (-1, 4)), np.float64))
+        object.__setattr__(self, "n_landmarks", int(self.n_landmarks))
+        n = self.landmark_ids.shape[0]
+        if self.frame_offsets.ndim != 1 or self.frame_offsets.size < 1:
+            raise ValueError("frame_offsets must be a non-empty 1-D array")
+        if self.frame_offsets[0] != 0 or self.frame_offsets[-1] != n or np.any(np.diff(self.frame_offsets) < 0):
+            raise ValueError("frame_offsets must start at 0, be non-decreasing and end at len(landmark_ids)")
+        if self.pixels.shape[0] != n:
+            raise ValueError("pixels and landmark_ids differ in length")
+        if n and (self.landmark_ids.min() < 0 or self.landmark_ids.max() >= self.n_landmarks):
+            raise ValueError("landmark_ids out of range [0, n_landmarks)")
+
+    @property
+    def n_frames(self) -> int:
+        return self.frame_offsets.shape[0] - 1
+
+    @property
+    def n_observations(self) -> int:
+        return self.landmark_ids.shape[0]
+
+    def frame(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """(landmark_ids (n,), pixels (n, 4)) observed at frame ``t``; read-only views."""
+        a, b = self.frame_offsets[t], self.frame_offsets[t + 1]
+        return self.landmark_ids[a:b], self.pixels[a:b]
+
+    @cached_property
+    def frame_index(self) -> np.ndarray:
+        """(N,) frame index of every observation."""
+        out = np.repeat(np.arange(self.n_frames), np.diff(self.frame_offsets))
+        out.setflags(write=False)
+        return out
+
+    def counts_per_frame(self) -> np.ndarray:
+        """(T,) number of observations in each frame."""
+        return np.diff(self.frame_offsets)
+
+    @cached_property
+    def observed_mask(self) -> np.ndarray:
+        """(M, T) bool: True where landmark j is observed at frame t."""
+        mask = np.zeros((self.n_landmarks, self.n_frames), dtype=bool)
+        mask[self.landmark_ids, self.frame_index] = True
+        mask.setflags(write=False)
+        return mask
+
+    def dense(self) -> np.ndarray:
+        """The dataset layout: (4, M, T) float64, ``-1`` where not observed (allocates 32·M·T bytes)."""
+        out = np.full((4, self.n_landmarks, self.n_frames), MISSING_PIXEL)
+        out[:, self.landmark_ids, self.frame_index] = self.pixels.T
+        return out
+
+    @classmethod
+    def from_dense(cls, features) -> "StereoObservations":
+        """Build from a (4, M, T) array with -1 (all four coordinates) where not observed."""
+        features = np.asarray(features, dtype=np.float64)
+        if features.ndim != 3 or features.shape[0] != 4:
+            raise ValueError(f"features must have shape (4, M, T), got {features.shape}")
+        _, m, t = features.shape
+        observed = np.any(features != MISSING_PIXEL, axis=0)  # (M, T)
+        frame_idx, lm_idx = np.nonzero(observed.T)  # sorted by frame, then landmark
+        pixels = features[:, lm_idx, frame_idx].T
+        offsets = np.zeros(t + 1, dtype=np.int64)
+        np.cumsum(np.bincount(frame_idx, minlength=t), out=offsets[1:])
+        return cls(offsets, lm_idx, pixels, m)
+
+    def track_lengths(self) -> np.ndarray:
+        """(M,) number of frames in which each landmark is observed."""
+        return np.bincount(self.landmark_ids, minlength=self.n_landmarks)
+
+
+@dataclass(frozen=True, eq=False)
+class Sequence:
+    """A stereo visual-inertial recording.
+
+    Attributes:
+        name: human-readable name (usually the file stem, e.g. ``"0027"``).
+        timestamps_s: (T,) frame times in seconds, strictly increasing.
+        linear_velocity_in_imu_mps: (T, 3) linear velocity of the IMU in its own frame, m/s.
+        angular_velocity_in_imu_radps: (T, 3) angular velocity of the IMU in its own frame, rad/s.
+        observations: stereo features, see :class:`StereoObservations`.
+        camera: stereo calibration (K in pixels, baseline in metres, the report's M).
+        cam_T_imu: (4, 4) maps IMU coordinates into the left camera frame.
+        source: where the data came from (a path, or ``"simulator"``), for messages.
+    """
+
+    name: str
+    timestamps_s: np.ndarray
+    linear_velocity_in_imu_mps: np.ndarray
+    angular_velocity_in_imu_radps: np.ndarray
+    observations: StereoObservations
+    camera: StereoCamera
+    cam_T_imu: np.ndarray
+    source: str = ""
+
+    def __post_init__(self):
+        object.__setattr__(self, "timestamps_s", _frozen(np.ravel(self.timestamps_s), np.float64))
+        object.__setattr__(self, "linear_velocity_in_imu_mps", _frozen(self.linear_velocity_in_imu_mps, np.float64))
+        object.__setattr__(
+            self, "angular_velocity_in_imu_radps", _frozen(self.angular_velocity_in_imu_radps, np.float64)
+        )
+        object.__setattr__(self, "cam_T_imu", _frozen(self.cam_T_imu, np.float64))
+        t = self.timestamps_s.shape[0]
+        for name in ("linear_velocity_in_imu_mps", "angular_velocity_in_imu_radps"):
+            if getattr(self, name).shape != (t, 3):
+                raise ValueError(f"{name} must have shape ({t}, 3), got {getattr(self, name).shape}")
+        if self.observations.n_frames != t:
+            raise ValueError(f"observations cover {self.observations.n_frames} frames, timestamps {t}")
+        if self.cam_T_imu.shape != (4, 4):
+            raise ValueError("cam_T_imu must be 4x4")
+
+    @property
+    def n_frames(self) -> int:
+        return self.timestamps_s.shape[0]
+
+    @property
+    def n_landmarks(self) -> int:
+        return self.observations.n_landmarks
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.timestamps_s[-1] - self.timestamps_s[0]) if self.n_frames > 1 else 0.0
+
+    @cached_property
+    def imu_T_cam(self) -> np.ndarray:
+        from vislam.core.lie import se3_inverse
+
+        out = se3_inverse(self.cam_T_imu)
+        out.setflags(write=False)
+        return out
+
+    def velocities(self) -> np.ndarray:
+        """(T, 6) twists u_t = (v_t, ω_t) in the report's order."""
+        return np.concatenate([self.linear_velocity_in_imu_mps, self.angular_velocity_in_imu_radps], axis=1)
+
+    def replace(self, **changes) -> "Sequence":
+        """A copy with some fields replaced (the original is unchanged)."""
+        from dataclasses import replace
+
+        return replace(self, **changes)
