@@ -5,12 +5,10 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from vislam.core.sequence import Sequence
-from vislam.tools.atomic import atomic_path
+from vislam.tools.npz import write_npz
 
 __all__ = ["load_sequence", "save_sequence"]
 
@@ -30,9 +28,7 @@ def save_sequence(sequence: Sequence, path, compress: bool = True) -> None:
         "b": np.array(sequence.camera.baseline_m),
         "cam_T_imu": sequence.cam_T_imu,
     }
-    with atomic_path(Path(path), suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            (np.savez_compressed if compress else np.savez)(fh, **arrays)
+    write_npz(path, arrays, compress=compress)
 
 
 def load_sequence(path) -> Sequence:
