@@ -45,6 +45,24 @@ def stereo_matrix(K, baseline_m: float) -> np.ndarray:
     )
 
 
+def _require_finite(out: np.ndarray, what: str) -> np.ndarray:
+    """Return ``out``, or raise GeometryError if any entry overflowed to inf/NaN (a point or
+    a disparity so close to zero that the result is not representable)."""
+    if not np.all(np.isfinite(out)):
+        raise GeometryError(f"{what}: result overflows (point too close to the camera plane z = 0)")
+    return out
+
+
+def _in_front(q: np.ndarray, what: str) -> np.ndarray:
+    """Depths q_z of homogeneous points, after checking they are finite and positive."""
+    if not np.all(np.isfinite(q)):
+        raise GeometryError(f"{what}: point coordinates must be finite")
+    z = q[..., 2]
+    if np.any(~(z > 0)):
+        raise GeometryError(f"{what}: point at or behind the camera (z <= 0)")
+    return z
+
+
 def _homogeneous(q) -> np.ndarray:
     q = np.asarray(q, dtype=np.float64)
     if q.shape[-1] == 3:
@@ -58,21 +76,20 @@ def dpi_dq(q) -> np.ndarray:
     """Jacobian of the projection π(q) = q / q_z for homogeneous q: (..., 4) -> (..., 4, 4).
 
     ``dπ/dq = (1/q_z) [[1, 0, -q_x/q_z, 0], [0, 1, -q_y/q_z, 0], [0, 0, 0, 0],
-    [0, 0, -q_w/q_z, 1]]``. Requires q_z > 0.
+    [0, 0, -q_w/q_z, 1]]``. Requires q_z > 0 and a finite result.
     """
     q = _homogeneous(q)
-    z = q[..., 2]
-    if np.any(~(z > 0)):
-        raise GeometryError("dpi_dq: point at or behind the camera (z <= 0)")
-    inv_z = 1.0 / z
+    z = _in_front(q, "dpi_dq")
     out = np.zeros(q.shape[:-1] + (4, 4))
-    out[..., 0, 0] = inv_z
-    out[..., 1, 1] = inv_z
-    out[..., 3, 3] = inv_z
-    out[..., 0, 2] = -q[..., 0] * inv_z * inv_z
-    out[..., 1, 2] = -q[..., 1] * inv_z * inv_z
-    out[..., 3, 2] = -q[..., 3] * inv_z * inv_z
-    return out
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below
+        inv_z = 1.0 / z
+        out[..., 0, 0] = inv_z
+        out[..., 1, 1] = inv_z
+        out[..., 3, 3] = inv_z
+        out[..., 0, 2] = -q[..., 0] * inv_z * inv_z
+        out[..., 1, 2] = -q[..., 1] * inv_z * inv_z
+        out[..., 3, 2] = -q[..., 3] * inv_z * inv_z
+    return _require_finite(out, "dpi_dq")
 
 
 @dataclass(frozen=True)
@@ -116,14 +133,17 @@ class StereoCamera:
     def project(self, p_in_cam) -> np.ndarray:
         """Pixels ``z = M π(q)`` (..., 4) of points (..., 3) or (..., 4) in the left camera frame."""
         q = _homogeneous(p_in_cam)
-        z = q[..., 2]
-        if np.any(~(z > 0)):
-            raise GeometryError("project: point at or behind the camera (z <= 0)")
-        return np.einsum("ij,...j->...i", self.M, q / z[..., None])
+        z = _in_front(q, "project")
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below
+            out = np.einsum("ij,...j->...i", self.M, q / z[..., None])
+        return _require_finite(out, "project")
 
     def projection_jacobian(self, p_in_cam) -> np.ndarray:
         """``M dπ/dq(q)`` (..., 4, 4): derivative of the pixels with respect to homogeneous q."""
-        return self.M @ dpi_dq(p_in_cam)
+        J = dpi_dq(p_in_cam)
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below
+            out = self.M @ J
+        return _require_finite(out, "projection_jacobian")
 
     def disparity_px(self, pixels) -> np.ndarray:
         """``uL - uR`` of observations (..., 4)."""
@@ -133,16 +153,20 @@ class StereoCamera:
     def triangulate(self, pixels) -> np.ndarray:
         """Invert the stereo model: observations (..., 4) -> points (..., 3) in the left camera.
 
-        Raises GeometryError for zero, negative or non-finite disparity.
+        Raises GeometryError for zero, negative or non-finite disparity, non-finite pixels,
+        and a disparity so small that the depth overflows.
         """
         pixels = np.asarray(pixels, dtype=np.float64)
-        d = self.disparity_px(pixels)
-        if np.any(~(d > 0)) or np.any(~np.isfinite(pixels)):
-            raise GeometryError("triangulate: disparity uL - uR must be finite and positive")
-        z = self.fsu * self.baseline_m / d
-        x = z * (pixels[..., 0] - self.cu) / self.fsu
-        y = z * (pixels[..., 1] - self.cv) / self.fsv
-        return np.stack([x, y, z], axis=-1)
+        if not np.all(np.isfinite(pixels)):
+            raise GeometryError("triangulate: pixel coordinates must be finite")
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below
+            d = self.disparity_px(pixels)
+            if np.any(~(d > 0)) or np.any(~np.isfinite(d)):
+                raise GeometryError("triangulate: disparity uL - uR must be finite and positive")
+            z = self.fsu * self.baseline_m / d
+            x = z * (pixels[..., 0] - self.cu) / self.fsu
+            y = z * (pixels[..., 1] - self.cv) / self.fsv
+        return _require_finite(np.stack([x, y, z], axis=-1), "triangulate")
 
     def triangulation_jacobian(self, pixels) -> np.ndarray:
         """Derivative of :meth:`triangulate` with respect to [uL, vL, uR, vR]: (..., 3, 4)."""
@@ -150,15 +174,16 @@ class StereoCamera:
         p = self.triangulate(pixels)
         d = self.disparity_px(pixels)
         z = p[..., 2]
-        dz_duL = -z / d  # z = fsu b / d,  dz/dd = -z / d,  dd/duL = 1, dd/duR = -1
-        a = (pixels[..., 0] - self.cu) / self.fsu
-        c = (pixels[..., 1] - self.cv) / self.fsv
         out = np.zeros(pixels.shape[:-1] + (3, 4))
-        out[..., 2, 0] = dz_duL
-        out[..., 2, 2] = -dz_duL
-        out[..., 0, 0] = dz_duL * a + z / self.fsu
-        out[..., 0, 2] = -dz_duL * a
-        out[..., 1, 0] = dz_duL * c
-        out[..., 1, 2] = -dz_duL * c
-        out[..., 1, 1] = z / self.fsv
-        return out
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below
+            dz_duL = -z / d  # z = fsu b / d,  dz/dd = -z / d,  dd/duL = 1, dd/duR = -1
+            a = (pixels[..., 0] - self.cu) / self.fsu
+            c = (pixels[..., 1] - self.cv) / self.fsv
+            out[..., 2, 0] = dz_duL
+            out[..., 2, 2] = -dz_duL
+            out[..., 0, 0] = dz_duL * a + z / self.fsu
+            out[..., 0, 2] = -dz_duL * a
+            out[..., 1, 0] = dz_duL * c
+            out[..., 1, 2] = -dz_duL * c
+            out[..., 1, 1] = z / self.fsv
+        return _require_finite(out, "triangulation_jacobian")

@@ -88,7 +88,9 @@ def _angle_coefficients(theta: np.ndarray):
     t = np.where(small, 1.0, theta)  # safe divisor on the small branch
     t2 = theta * theta
     A = np.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0 - t2**3 / 5040.0, np.sin(t) / t)
-    B = np.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0 - t2**3 / 40320.0, (1.0 - np.cos(t)) / (t * t))
+    # 1 - cos θ = 2 sin²(θ/2) avoids the cancellation of 1 - cos θ for small θ.
+    sinc_half = np.sin(0.5 * t) / (0.5 * t)
+    B = np.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0 - t2**3 / 40320.0, 0.5 * sinc_half * sinc_half)
     C = np.where(
         small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0 - t2**3 / 362880.0, (t - np.sin(t)) / (t * t * t)
     )
@@ -132,18 +134,21 @@ def so3_left_jacobian(phi) -> np.ndarray:
 def so3_left_jacobian_inverse(phi) -> np.ndarray:
     """Inverse of :func:`so3_left_jacobian`: ``I - phi^/2 + D (phi^)^2``.
 
-    D = (1 - θ sin θ / (2 (1 - cos θ))) / θ², with its series 1/12 + θ²/720 + θ⁴/30240
-    for small θ. Valid for θ < 2π.
+    D = (1 - θ sin θ / (2 (1 - cos θ))) / θ² = (1 - (θ/2) cot(θ/2)) / θ², with its series
+    1/12 + θ²/720 + θ⁴/30240 for small θ. Valid for θ < 2π.
     """
     phi = _as_float(phi)
     theta = np.linalg.norm(phi, axis=-1)
     small = theta < SMALL_ANGLE
     t = np.where(small, 1.0, theta)
     t2 = theta * theta
+    # θ sin θ / (2 (1 - cos θ)) = (θ/2) / tan(θ/2): same value, without the cancellation of
+    # 1 - cos θ, which cost ~1e-12 relative accuracy in J⁻¹ (and se3_log) just above SMALL_ANGLE.
+    half = 0.5 * t
     D = np.where(
         small,
         1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
-        (1.0 - t * np.sin(t) / (2.0 * (1.0 - np.cos(t)))) / (t * t),
+        (1.0 - half / np.tan(half)) / (t * t),
     )
     K = so3_hat(phi)
     return np.eye(3) - 0.5 * K + D[..., None, None] * (K @ K)

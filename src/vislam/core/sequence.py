@@ -117,6 +117,28 @@ class StereoObservations:
         np.cumsum(np.bincount(frame_idx, minlength=t), out=offsets[1:])
         return cls(offsets, lm_idx, pixels, m)
 
+    def repeated_mask(self) -> np.ndarray:
+        """(N,) True for an observation whose four pixel values are bit-identical to the
+        same landmark's observation in the previous frame.
+
+        A sub-pixel tracker never reproduces a position exactly, so such a repeat is a
+        tracker artifact, not a measurement: the KITTI feature files repeat every live
+        track's previous pixels at the frames where new features are detected (5-12 % of
+        their observations), while the vehicle moves on.
+        """
+        n = self.n_observations
+        out = np.zeros(n, dtype=bool)
+        if n < 2:
+            return out
+        order = np.lexsort((self.frame_index, self.landmark_ids))  # by landmark, then frame
+        ids = self.landmark_ids[order]
+        frames = self.frame_index[order]
+        px = self.pixels[order]
+        follows = (ids[1:] == ids[:-1]) & (frames[1:] == frames[:-1] + 1)
+        same = follows & np.all(px[1:] == px[:-1], axis=1)
+        out[order[1:][same]] = True
+        return out
+
     def track_lengths(self) -> np.ndarray:
         """(M,) number of frames in which each landmark is observed."""
         return np.bincount(self.landmark_ids, minlength=self.n_landmarks)

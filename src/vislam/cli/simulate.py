@@ -1,0 +1,93 @@
+"""``vislam simulate --out DIR``: simulate a drive with ground truth and write it.
+
+The library (:func:`vislam.core.simulate.simulate_drive`) makes the drive and
+:func:`vislam.tools.simulate_io.write_simulated_drive` writes it; this module parses the
+options and prints a short summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from vislam.core.simulate import SimulationOptions, simulate_drive
+from vislam.errors import ConfigError
+from vislam.tools.simulate_io import write_simulated_drive
+
+__all__ = ["register", "run", "format_summary"]
+
+_DEFAULTS = SimulationOptions()
+
+#: command-line flag -> SimulationOptions field
+_FLAGS = {
+    "seed": "seed",
+    "frames": "n_frames",
+    "moving_fraction": "moving_fraction",
+    "outlier_fraction": "outlier_fraction",
+    "pixel_noise": "pixel_noise_px",
+    "velocity_noise": "velocity_noise_mps",
+    "angular_noise": "angular_noise_radps",
+}
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "simulate",
+        help="simulate a KITTI-like drive with ground truth",
+        description="Simulate a stereo visual-inertial drive (KITTI-like road, camera and feature tracks) and "
+        "write DIR/sequence.npz (dataset format), DIR/groundtruth.tum and DIR/groundtruth.kitti (true IMU poses) "
+        "and DIR/landmarks_true.npz (true landmarks, moving flags, outlier flags). The same options always give "
+        "the same files.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--out", required=True, metavar="DIR", default=argparse.SUPPRESS,
+                        help="output directory (created if needed)")
+    parser.add_argument("--seed", type=int, default=_DEFAULTS.seed, help="random seed")
+    parser.add_argument("--frames", type=int, default=_DEFAULTS.n_frames, help="number of frames (10 Hz)")
+    parser.add_argument("--moving-fraction", type=float, default=_DEFAULTS.moving_fraction, metavar="F",
+                        help="share of the landmarks on moving vehicles, in [0, 1)")
+    parser.add_argument("--outlier-fraction", type=float, default=_DEFAULTS.outlier_fraction, metavar="F",
+                        help="share of the observations replaced by gross mismatches, in [0, 1)")
+    parser.add_argument("--pixel-noise", type=float, default=_DEFAULTS.pixel_noise_px, metavar="PX",
+                        help="1-sigma pixel noise per coordinate (px)")
+    parser.add_argument("--velocity-noise", type=float, default=_DEFAULTS.velocity_noise_mps, metavar="MPS",
+                        help="1-sigma white noise on each linear-velocity sample, per axis (m/s)")
+    parser.add_argument("--angular-noise", type=float, default=_DEFAULTS.angular_noise_radps, metavar="RADPS",
+                        help="1-sigma white noise on each angular-velocity sample, per axis (rad/s)")
+    parser.set_defaults(func=run)
+
+
+def options_from_args(args) -> SimulationOptions:
+    values = {field: getattr(args, flag) for flag, field in _FLAGS.items()}
+    try:
+        return SimulationOptions(**values)
+    except ConfigError as exc:
+        # Name the command-line flag rather than the option field.
+        message = str(exc)
+        for flag, field in _FLAGS.items():
+            message = message.replace(field, "--" + flag.replace("_", "-"))
+        raise ConfigError(message) from None
+
+
+def format_summary(stats, paths) -> str:
+    s = stats
+    lines = [
+        f"frames:        {s.n_frames} ({s.duration_s:.1f} s)",
+        f"distance:      {s.distance_m:.0f} m (speed {s.speed_min_mps:.1f}-{s.speed_max_mps:.1f} m/s, "
+        f"heading change {s.heading_change_deg:.0f} deg)",
+        f"landmarks:     {s.n_landmarks} ({s.n_moving_landmarks} moving)",
+        f"observations:  {s.n_observations} ({s.n_outliers} outliers); per frame mean "
+        f"{s.observations_per_frame_mean:.1f}, min {s.observations_per_frame_min}, "
+        f"max {s.observations_per_frame_max}",
+        f"track length:  median {s.track_length_median:g} frames, max {s.track_length_max}",
+        "wrote:",
+    ]
+    lines += [f"  {p}" for p in paths]
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    options = options_from_args(args)
+    drive = simulate_drive(options)
+    paths = write_simulated_drive(drive, args.out)
+    print(format_summary(drive.statistics(), paths))
+    return 0

@@ -1,0 +1,398 @@
+"""The three estimators of the report, as drivers that run a whole :class:`Sequence`.
+
+* :func:`run_localization` — EKF prediction of the IMU pose only (Section III-A).
+* :func:`run_mapping` — EKF update of landmarks with the poses known (Section III-B).
+* :func:`run_slam` — the joint EKF over pose and landmarks (Section III-C).
+* :func:`run` — dispatch on a mode name.
+
+Each returns a :class:`vislam.core.results.RunResult`. ``progress`` (optional) is called
+with the number of frames done, for a progress bar; the library prints nothing.
+
+SLAM processing order at frame t:
+
+1. predict with the velocity of frame t over [t−1, t] (see :mod:`.propagation`);
+2. update pose and landmarks with the observations of landmarks in the state, each
+   first tested against the chi-square gate;
+3. reject landmarks whose observations failed the gate ``max_consecutive_gated`` frames
+   in a row (they leave the state and stay in the map flagged as rejected);
+4. marginalize landmarks whose track ended (not observed at t): their rows and columns
+   leave Σ — exact for a Gaussian — and their mean and marginal covariance are frozen
+   into the map (``keep_all_landmarks`` keeps them, the report's variant);
+5. initialize new landmarks from their first observation that passes the guards
+   (:func:`vislam.core.updaters.initialization_guard`).
+
+A landmark observed again after its track ended (never the case in the KITTI files,
+whose tracks are contiguous) starts a new track: a new state entry and a new map entry
+with ``track`` incremented.
+
+Numerical health: after each frame the state and covariance are checked for
+non-finite values (and the innovation covariance must admit a Cholesky factor); on
+failure the run stops and returns a *partial* result with the frames done so far.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from vislam.core.lie import se3_adjoint, se3_inverse, se3_log
+from vislam.core.options import MODES, FilterOptions
+from vislam.core.propagation import dead_reckoning, motion_increments, predict_state
+from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunResult, RunStats
+from vislam.core.sequence import Sequence
+from vislam.core.state import SlamState
+from vislam.core.updaters import (
+    StereoModel,
+    initialization_guard,
+    mapping_initialize,
+    mapping_update,
+    slam_initialize_landmarks,
+    slam_predict_nis,
+    slam_update,
+    slam_update_reference,
+)
+from vislam.errors import ConfigError, EstimationError, GeometryError
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["run", "run_localization", "run_mapping", "run_slam"]
+
+Progress = Callable[[int], None] | None
+
+
+def run(sequence: Sequence, mode: str, options: FilterOptions | None = None, progress: Progress = None,
+        world_T_imu: np.ndarray | None = None) -> RunResult:
+    """Run one of the report's estimators (``mode`` in :data:`vislam.core.options.MODES`).
+
+    ``world_T_imu`` (mapping only): the known poses; by default the localization result.
+    """
+    options = options or FilterOptions()
+    if mode not in MODES:
+        raise ConfigError(f"unknown mode {mode!r}; expected one of {', '.join(MODES)}")
+    # The filter's matrices are small (a few hundred rows): multi-threaded BLAS only adds
+    # synchronization cost there (measured 4x slower on 2 cores), so use one thread.
+    with threadpool_limits(limits=1, user_api="blas"):
+        if mode == "localization":
+            return run_localization(sequence, options, progress)
+        if mode == "mapping":
+            return run_mapping(sequence, options, world_T_imu=world_T_imu, progress=progress)
+        return run_slam(sequence, options, progress)
+
+
+# ----------------------------------------------------------------------------- localization
+
+
+def run_localization(sequence: Sequence, options: FilterOptions | None = None, progress: Progress = None) -> RunResult:
+    """EKF prediction only: μ ← exp(−τ û) μ, Σ ← F Σ Fᵀ + τ² W for every frame."""
+    options = options or FilterOptions()
+    t0 = time.perf_counter()
+    means, covs = dead_reckoning(sequence, options.W, options.initial_pose_covariance)
+    elapsed = time.perf_counter() - t0
+    T = sequence.n_frames
+    if progress:
+        progress(T)
+    stats = RunStats(frames=T, frames_processed=T, observations_total=sequence.observations.n_observations,
+                     frame_seconds=np.full(T, elapsed / T))
+    return RunResult("localization", sequence.name, sequence.timestamps_s.copy(), se3_inverse(means), covs,
+                     None, options, stats)
+
+
+# ----------------------------------------------------------------------------- shared pieces
+
+
+def _repeated_observations(sequence: Sequence, options: FilterOptions, stats: RunStats) -> np.ndarray:
+    """(N,) True for observations that repeat the previous frame's pixels (and are not to
+    be used as they are, per ``options.repeated_observations``)."""
+    obs = sequence.observations
+    if options.repeated_observations == "use":
+        return np.zeros(obs.n_observations, dtype=bool)
+    repeated = obs.repeated_mask()
+    stats.observations_repeated = int(repeated.sum())
+    if stats.observations_repeated:
+        logger.info("%s: %d observations repeat the previous frame's pixels exactly (%s)", sequence.name,
+                    stats.observations_repeated, options.repeated_observations)
+    return repeated
+
+
+class _MapBuilder:
+    """Collects frozen landmark entries (marginalized, rejected or final)."""
+
+    _KEYS = ("ids", "track", "p", "cov", "nobs", "ngated", "first", "last", "status")
+
+    def __init__(self):
+        self._cols: dict[str, list] = {k: [] for k in self._KEYS}
+
+    def add(self, ids, track, p, cov, nobs, ngated, first, last, status) -> None:
+        c = self._cols
+        c["ids"].append(np.asarray(ids, dtype=np.int64))
+        c["track"].append(np.asarray(track, dtype=np.int64))
+        c["p"].append(np.asarray(p, dtype=np.float64).reshape(-1, 3))
+        c["cov"].append(np.asarray(cov, dtype=np.float64).reshape(-1, 3, 3))
+        c["nobs"].append(np.asarray(nobs, dtype=np.int64))
+        c["ngated"].append(np.asarray(ngated, dtype=np.int64))
+        c["first"].append(np.asarray(first, dtype=np.int64))
+        c["last"].append(np.asarray(last, dtype=np.int64))
+        c["status"].append(np.broadcast_to(np.asarray(status, dtype=np.uint8), np.shape(ids)).copy())
+
+    def build(self) -> LandmarkMap:
+        c = self._cols
+        if not c["ids"]:
+            return LandmarkMap.empty()
+        cat = {k: np.concatenate(v) for k, v in c.items()}
+        order = np.lexsort((cat["track"], cat["ids"]))
+        return LandmarkMap(ids=cat["ids"][order], track=cat["track"][order], p_lm_in_world=cat["p"][order],
+                           covariance=cat["cov"][order], n_observations=cat["nobs"][order],
+                           n_gated=cat["ngated"][order], first_frame=cat["first"][order],
+                           last_frame=cat["last"][order], status=cat["status"][order])
+
+
+class _Tracks:
+    """Per-landmark bookkeeping by dataset id: counts, first/last frames, rejection."""
+
+    def __init__(self, M: int):
+        self.track_count = np.zeros(M, dtype=np.int64)  # tracks started so far
+        self.rejected = np.zeros(M, dtype=bool)
+        self.nobs = np.zeros(M, dtype=np.int64)
+        self.ngated = np.zeros(M, dtype=np.int64)
+        self.consecutive = np.zeros(M, dtype=np.int64)
+        self.first = np.full(M, -1, dtype=np.int64)
+        self.last = np.full(M, -1, dtype=np.int64)
+
+    def started(self, ids: np.ndarray, t: int) -> None:
+        self.track_count[ids] += 1
+        self.nobs[ids] = 1
+        self.ngated[ids] = 0
+        self.consecutive[ids] = 0
+        self.first[ids] = t
+        self.last[ids] = t
+
+    def updated(self, ids: np.ndarray, ok: np.ndarray, t: int, stats: RunStats, max_consecutive: int) -> np.ndarray:
+        """Record the gate outcome of one observation per id; return the ids to reject."""
+        self.nobs[ids[ok]] += 1
+        self.last[ids[ok]] = t
+        self.ngated[ids[~ok]] += 1
+        self.consecutive[ids[ok]] = 0
+        self.consecutive[ids[~ok]] += 1
+        stats.observations_used += int(ok.sum())
+        stats.observations_gated += int((~ok).sum())
+        if not max_consecutive:
+            return ids[:0]
+        bad = ids[self.consecutive[ids] >= max_consecutive]
+        self.rejected[bad] = True
+        stats.landmarks_rejected += int(bad.size)
+        return bad
+
+    def entry(self, ids: np.ndarray) -> tuple:
+        return self.track_count[ids] - 1, self.nobs[ids], self.ngated[ids], self.first[ids], self.last[ids]
+
+
+# ----------------------------------------------------------------------------- mapping
+
+
+def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_T_imu: np.ndarray | None = None,
+                progress: Progress = None) -> RunResult:
+    """Landmark mapping with known poses (by default the localization trajectory).
+
+    Landmarks are independent given the poses, so each keeps its own 3x3 covariance —
+    the exact block-diagonal equivalent of the report's 3M x 3M Σ.
+    """
+    options = options or FilterOptions()
+    T = sequence.n_frames
+    t_start = time.perf_counter()
+    pose_cov = None
+    if world_T_imu is None:
+        means, pose_cov = dead_reckoning(sequence, options.W, options.initial_pose_covariance)
+        world_T_imu = se3_inverse(means)
+    else:
+        world_T_imu = np.asarray(world_T_imu, dtype=np.float64)
+        if world_T_imu.shape != (T, 4, 4):
+            raise ConfigError(f"mapping needs one pose per frame: expected ({T}, 4, 4), got {world_T_imu.shape}")
+    imu_T_world = se3_inverse(world_T_imu)
+    model = StereoModel(sequence.camera, sequence.cam_T_imu)
+    V = options.V
+    gate = options.gate_threshold
+    M = sequence.n_landmarks
+    mean = np.zeros((M, 3))
+    cov = np.zeros((M, 3, 3))
+    active = np.zeros(M, dtype=bool)  # has a current estimate
+    tracks = _Tracks(M)
+    builder = _MapBuilder()
+    stats = RunStats(frames=T, observations_total=sequence.observations.n_observations)
+    obs = sequence.observations
+    repeated = _repeated_observations(sequence, options, stats)
+    split = options.repeated_observations == "split"
+    frame_seconds = np.zeros(T)
+    frame_seconds[0] = time.perf_counter() - t_start
+
+    def freeze(ids: np.ndarray, status: int) -> None:
+        if ids.size:
+            builder.add(ids, *tracks.entry(ids)[:1], mean[ids], cov[ids], *tracks.entry(ids)[1:], status)
+            active[ids] = False
+
+    for t in range(T):
+        tic = time.perf_counter()
+        ids, z = obs.frame(t)
+        rep = repeated[obs.frame_offsets[t]:obs.frame_offsets[t + 1]]
+        if split and np.any(rep & active[ids]):
+            freeze(ids[rep & active[ids]], LANDMARK_OK)  # the track ends; the repeat starts a new one
+            rep = np.zeros_like(rep)
+        keep = ~rep & ~tracks.rejected[ids]
+        ids, z = ids[keep], z[keep]
+        upd = active[ids]
+        if np.any(upd):
+            u_ids = ids[upd]
+            mean[u_ids], cov[u_ids], ok, _ = mapping_update(model, imu_T_world[t], mean[u_ids], cov[u_ids], z[upd],
+                                                             V, gate)
+            bad = tracks.updated(u_ids, ok, t, stats, options.max_consecutive_gated)
+            freeze(bad, LANDMARK_REJECTED)
+        new = ~upd
+        if np.any(new):
+            c_ids, c_z = ids[new], z[new]
+            good = initialization_guard(sequence.camera, c_z, options)
+            stats.observations_not_initialized += int((~good).sum())
+            if np.any(good):
+                g_ids = c_ids[good]
+                mean[g_ids], cov[g_ids] = mapping_initialize(model, imu_T_world[t], c_z[good], V)
+                active[g_ids] = True
+                tracks.started(g_ids, t)
+                stats.landmarks_initialized += int(g_ids.size)
+                stats.observations_used += int(g_ids.size)
+        frame_seconds[t] += time.perf_counter() - tic
+        if progress:
+            progress(t + 1)
+    freeze(np.nonzero(active)[0], LANDMARK_OK)
+    stats.frames_processed = T
+    stats.frame_seconds = frame_seconds
+    return RunResult("mapping", sequence.name, sequence.timestamps_s.copy(), world_T_imu, pose_cov, builder.build(),
+                     options, stats)
+
+
+# ----------------------------------------------------------------------------- SLAM
+
+
+def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress: Progress = None,
+             reference: bool = False) -> RunResult:
+    """The joint EKF over the IMU pose and the landmarks (the report's Section III-C).
+
+    ``reference=True`` uses the plain dense update (:func:`slam_update_reference`) —
+    slow, for tests that check the fast block form against it.
+    """
+    options = options or FilterOptions()
+    T = sequence.n_frames
+    M = sequence.n_landmarks
+    model = StereoModel(sequence.camera, sequence.cam_T_imu)
+    V, W = options.V, options.W
+    gate = options.gate_threshold
+    oc = options.ekf == "oc"
+    tau, u = motion_increments(sequence)
+    update = slam_update_reference if reference else slam_update
+
+    state = SlamState(np.eye(4), options.initial_pose_covariance, n_ids=M)
+    tracks = _Tracks(M)
+    builder = _MapBuilder()
+    means = np.zeros((T, 4, 4))
+    covs = np.zeros((T, 6, 6))
+    stats = RunStats(frames=T, observations_total=sequence.observations.n_observations)
+    frame_seconds = np.zeros(T)
+    obs = sequence.observations
+    repeated = _repeated_observations(sequence, options, stats)
+    split = options.repeated_observations == "split"
+    seen = np.zeros(M, dtype=bool)
+    last_correction = np.zeros(6)  # pose correction of the previous update (OC transition)
+    error = None
+    done = 0
+
+    def freeze(slots: np.ndarray, status: int) -> None:
+        if slots.size == 0:
+            return
+        ids = state.landmark_ids[slots]
+        track, nobs, ngated, first, last = tracks.entry(ids)
+        builder.add(ids, track, state.p_lm_in_world[slots], state.landmark_cov(slots), nobs, ngated, first, last,
+                    status)
+        state.remove_slots(slots)
+
+    for t in range(T):
+        tic = time.perf_counter()
+        try:
+            # ---- 1. prediction
+            if t > 0:
+                predict_state(state, tau[t - 1], u[t - 1], W, last_correction if oc else None)
+            mu_prior = state.imu_T_world
+            # unobservable directions of the pose at the prior (OC variant)
+            N_pose = -se3_adjoint(mu_prior) if oc else None
+            ids_seen, z = obs.frame(t)
+            rep = repeated[obs.frame_offsets[t]:obs.frame_offsets[t + 1]]
+            if split and np.any(rep):
+                slots_rep = state.slot_of[ids_seen[rep]]
+                freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one
+                rep = np.zeros_like(rep)
+            usable = ~rep & ~tracks.rejected[ids_seen]
+            ids, z = ids_seen[usable], z[usable]
+            slot_arr = state.slot_of[ids]
+            live = slot_arr >= 0
+            # ---- 2. update with the landmarks in the state
+            if np.any(live):
+                slots, lids = slot_arr[live], ids[live]
+                r, Hp, Hl, in_front, nis = slam_predict_nis(state, model, slots, z[live], V, N_pose)
+                ok = in_front & (nis <= gate)
+                try:
+                    update(state, slots[ok], r[ok], Hp[ok], Hl[ok], V)
+                except np.linalg.LinAlgError as exc:
+                    raise EstimationError(f"innovation covariance not positive definite at frame {t}: {exc}",
+                                          frame=t) from None
+                # ---- 3. reject landmarks that keep failing the gate
+                bad = tracks.updated(lids, ok, t, stats, options.max_consecutive_gated)
+                freeze(state.slot_of[bad], LANDMARK_REJECTED)
+            # ---- 4. marginalize landmarks whose track ended
+            if not options.keep_all_landmarks and state.n_landmarks:
+                seen[ids_seen] = True  # a skipped repeat keeps its track alive
+                freeze(np.nonzero(~seen[state.landmark_ids])[0], LANDMARK_OK)
+                seen[ids_seen] = False
+            # ---- 5. initialize new landmarks
+            new = ~live
+            if np.any(new):
+                n_ids, n_z = ids[new], z[new]
+                good = initialization_guard(sequence.camera, n_z, options)
+                stats.observations_not_initialized += int((~good).sum())
+                if np.any(good):
+                    g_ids = n_ids[good]
+                    slam_initialize_landmarks(state, model, g_ids, n_z[good], V, N_pose)
+                    tracks.started(g_ids, t)
+                    stats.landmarks_initialized += int(g_ids.size)
+                    stats.observations_used += int(g_ids.size)
+            if oc:
+                last_correction = se3_log(state.imu_T_world @ se3_inverse(mu_prior))
+            stats.max_state_landmarks = max(stats.max_state_landmarks, state.n_landmarks)
+            if not state.is_finite():
+                raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
+            if np.any(np.diagonal(state.cov) < -1e-9):
+                raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
+        except (EstimationError, GeometryError) as exc:
+            error = str(exc) if isinstance(exc, EstimationError) else f"frame {t}: {exc}"
+            logger.error("%s; stopping with a partial result", error)
+            break
+        means[t] = state.imu_T_world
+        covs[t] = state.pose_cov
+        frame_seconds[t] = time.perf_counter() - tic
+        done = t + 1
+        if progress:
+            progress(done)
+
+    # Landmarks still in the state enter the map with their final estimate (after a
+    # failure, only those whose mean and covariance are still finite).
+    if state.n_landmarks:
+        slots = np.arange(state.n_landmarks)
+        if error is not None:
+            finite = np.all(np.isfinite(state.p_lm_in_world), axis=1)
+            finite &= np.all(np.isfinite(state.landmark_cov(slots)), axis=(1, 2))
+            slots = slots[finite]
+        freeze(slots, LANDMARK_OK)
+    stats.frames_processed = done
+    stats.frame_seconds = frame_seconds[:done]
+    world_T_imu = se3_inverse(means[:done]) if done else np.zeros((0, 4, 4))
+    return RunResult("slam", sequence.name, sequence.timestamps_s[:done].copy(), world_T_imu, covs[:done],
+                     builder.build(), options, stats, partial=error is not None, error=error)

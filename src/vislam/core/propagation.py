@@ -1,0 +1,82 @@
+"""EKF prediction of the inverse IMU pose (the report's Section III-A).
+
+Motion model, with ``T = imu_T_world`` and u = (v, ω) the body twist (IMU frame)::
+
+    T_{t+1} = exp((τ (−u + w))^) T_t,        w ~ N(0, W)
+
+Prediction of mean and covariance (left perturbation, see :mod:`vislam.core.state`)::
+
+    μ ← exp(−τ û) μ
+    Σ_pp ← F Σ_pp Fᵀ + τ² W,     F = exp(−τ ad(u)) = Ad(exp(−τ u))
+    Σ_pl ← F Σ_pl                (landmarks are static: identity on their blocks)
+
+Velocity association (measured against the KITTI ground truth, see the README): the
+velocity sample of frame k+1 is the twist over the interval between frames k and k+1,
+``τ_k = t_{k+1} − t_k``. On sparse 0027 this gives a dead-reckoning ATE of 2.03 m,
+against 2.34 m when the sample of frame k is used instead (0020: 3.52 m vs 4.13 m).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vislam.core.lie import se3_adjoint, se3_exp
+from vislam.core.sequence import Sequence
+
+__all__ = ["motion_increments", "predict_pose", "predict_state", "dead_reckoning"]
+
+
+def motion_increments(sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
+    """(T−1,) step lengths τ_k and (T−1, 6) twists u_{k+1} used for the step k → k+1."""
+    tau = np.diff(sequence.timestamps_s)
+    u = sequence.velocities()[1:]
+    return tau, u
+
+
+def predict_pose(imu_T_world: np.ndarray, pose_cov: np.ndarray, tau: float, u: np.ndarray, W: np.ndarray,
+                 oc_correction: np.ndarray | None = None):
+    """One prediction step of the pose alone. Returns (μ', Σ', F).
+
+    ``oc_correction`` (observability-constrained variant): the pose correction ε of the
+    previous update, μ_{t|t} = exp(ε) μ_{t|t−1}. The transition is then
+    F* = F Ad(exp(ε)), the smallest change of F that carries the unobservable directions
+    −Ad(μ_{t|t−1}) of the previous prior onto −Ad(μ_{t+1|t}) of the new one.
+    """
+    step = se3_exp(-tau * u)  # exp(−τ û)
+    F = se3_adjoint(step)  # exp(−τ ad(u)) = Ad(exp(−τ û))
+    if oc_correction is not None:
+        F = F @ se3_adjoint(se3_exp(oc_correction))  # F* = F Ad(exp(ε))
+    mean = step @ imu_T_world  # μ' = exp(−τ û) μ
+    cov = F @ pose_cov @ F.T + (tau * tau) * W  # Σ' = F Σ Fᵀ + τ² W
+    return mean, 0.5 * (cov + cov.T), F
+
+
+def predict_state(state, tau: float, u: np.ndarray, W: np.ndarray, oc_correction: np.ndarray | None = None) -> None:
+    """Prediction of the joint SLAM state in place (pose block and pose–landmark blocks)."""
+    mean, pose_cov, F = predict_pose(state.imu_T_world, state.pose_cov, tau, u, W, oc_correction)
+    state.imu_T_world = mean
+    n = state.dim
+    cov = state.cov
+    cov[:6, :6] = pose_cov
+    if n > 6:
+        cross = F @ cov[:6, 6:n]  # Σ_pl ← F Σ_pl
+        cov[:6, 6:n] = cross
+        cov[6:n, :6] = cross.T
+
+
+def dead_reckoning(sequence: Sequence, W: np.ndarray, initial_cov: np.ndarray):
+    """Integrate the whole sequence: (T, 4, 4) imu_T_world means and (T, 6, 6) covariances."""
+    tau, u = motion_increments(sequence)
+    T = sequence.n_frames
+    steps = se3_exp(-tau[:, None] * u)  # exp(−τ_k û_{k+1}), batched
+    F = se3_adjoint(steps)
+    Q = (tau * tau)[:, None, None] * W  # τ² W
+    means = np.empty((T, 4, 4))
+    covs = np.empty((T, 6, 6))
+    means[0] = np.eye(4)
+    covs[0] = initial_cov
+    for k in range(T - 1):
+        means[k + 1] = steps[k] @ means[k]  # μ_{k+1} = exp(−τ û) μ_k
+        c = F[k] @ covs[k] @ F[k].T + Q[k]  # Σ_{k+1} = F Σ_k Fᵀ + τ² W
+        covs[k + 1] = 0.5 * (c + c.T)
+    return means, covs

@@ -1,0 +1,326 @@
+"""EKF updaters: the stereo observation model, gating, the joint SLAM update, landmark
+initialization, and the per-landmark mapping update.
+
+Observation model (the report's), with ``T = imu_T_world`` and a landmark ``m`` (world)::
+
+    z = h(T, m) + v = M π(cam_T_imu T m) + v,        v ~ N(0, V)
+
+Jacobians at the mean (left perturbation of T, additive on m)::
+
+    H_pose = M dπ/dq(q) cam_T_imu (μ m)^⊙              (4x6)
+    H_lm   = M dπ/dq(q) cam_T_imu μ Pᵀ                 (4x3),  q = cam_T_imu μ m
+
+Each observation touches the pose block and one landmark block only, so the products
+with the stacked Jacobian H are formed from those blocks (never a dense 4N x n H).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy.linalg import solve_triangular
+
+from vislam.core.camera import StereoCamera, dpi_dq
+from vislam.core.lie import se3_exp, se3_inverse, se3_odot
+from vislam.core.state import POSE_DIM, SlamState
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "StereoModel",
+    "innovation_nis",
+    "initialization_guard",
+    "oc_project",
+    "slam_predict_nis",
+    "slam_update",
+    "slam_update_reference",
+    "slam_initialize_landmarks",
+    "mapping_update",
+    "mapping_initialize",
+]
+
+
+class StereoModel:
+    """The stereo observation model for a fixed camera and cam_T_imu."""
+
+    def __init__(self, camera: StereoCamera, cam_T_imu: np.ndarray):
+        self.camera = camera
+        self.M = camera.M
+        self.cam_T_imu = np.asarray(cam_T_imu, dtype=np.float64)
+        # the exact matrix inverse: a recorded cam_T_imu is rigid only to ~1e-7, and the
+        # initialization must invert exactly what the observation model applies
+        self.imu_T_cam = np.linalg.inv(self.cam_T_imu)
+
+    def predict(self, imu_T_world: np.ndarray, p_lm_in_world: np.ndarray, with_pose_jacobian: bool = True):
+        """Predicted observations and Jacobians for k landmarks.
+
+        Returns:
+            z_hat: (k, 4) predicted pixels (rows with ``in_front`` False are garbage).
+            H_pose: (k, 4, 6) or None.
+            H_lm: (k, 4, 3).
+            in_front: (k,) bool, q_z > 0 (only those can be linearized).
+        """
+        k = p_lm_in_world.shape[0]
+        m_h = np.empty((k, 4))
+        m_h[:, :3] = p_lm_in_world
+        m_h[:, 3] = 1.0
+        cam_T_world = self.cam_T_imu @ imu_T_world
+        q = m_h @ cam_T_world.T  # q = cam_T_imu μ m
+        in_front = q[:, 2] > 1e-6
+        q_safe = q.copy()
+        q_safe[~in_front, 2] = 1.0
+        J = self.M @ dpi_dq(q_safe)  # M dπ/dq(q)   (k, 4, 4)
+        z_hat = (q_safe / q_safe[:, 2:3]) @ self.M.T  # M π(q)
+        H_lm = J[:, :, :3] @ cam_T_world[:3, :3]  # M dπ/dq cam_T_imu μ Pᵀ
+        H_pose = None
+        if with_pose_jacobian:
+            q_imu = m_h @ imu_T_world.T  # μ m
+            H_pose = (J @ self.cam_T_imu) @ se3_odot(q_imu)  # M dπ/dq cam_T_imu (μ m)^⊙
+        return z_hat, H_pose, H_lm, in_front
+
+
+def innovation_nis(r: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """Normalized innovation squared rᵀ S⁻¹ r for (k, 4) residuals and (k, 4, 4) covariances."""
+    if r.shape[0] == 0:
+        return np.zeros(0)
+    x = np.linalg.solve(S, r[:, :, None])[:, :, 0]
+    return np.einsum("ki,ki->k", r, x)
+
+
+def initialization_guard(camera: StereoCamera, pixels: np.ndarray, options) -> np.ndarray:
+    """(k,) True where an observation may be triangulated (the initialization rule).
+
+    A landmark is initialized from its first observation that has a finite disparity of
+    at least ``min_disparity_px``, rows that agree within ``max_row_difference_px``,
+    and a triangulated depth within [``min_depth_m``, ``max_depth_m``].
+    """
+    pixels = np.asarray(pixels, dtype=np.float64)
+    finite = np.all(np.isfinite(pixels), axis=1)
+    d = np.where(finite, pixels[:, 0] - pixels[:, 2], -1.0)
+    ok = finite & (d >= max(options.min_disparity_px, 1e-9))
+    depth = np.divide(camera.fsu * camera.baseline_m, d, out=np.full_like(d, np.inf), where=d > 0)
+    ok &= (depth >= options.min_depth_m) & (depth <= options.max_depth_m)
+    ok &= np.abs(pixels[:, 1] - pixels[:, 3]) <= options.max_row_difference_px
+    return ok
+
+
+def _gather_blocks(state: SlamState, slots: np.ndarray):
+    """Σ_pp (6,6), Σ_p,s (k,6,3) and Σ_s,s (k,3,3) for landmark slots."""
+    P = state.cov
+    rows = state.landmark_rows(slots)  # (k, 3)
+    P_pl = P[:POSE_DIM][:, rows]  # (6, k, 3)
+    P_ll = P[rows[:, :, None], rows[:, None, :]]  # (k, 3, 3)
+    return P[:POSE_DIM, :POSE_DIM], np.transpose(P_pl, (1, 0, 2)), P_ll
+
+
+def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
+                     N_pose: np.ndarray | None = None):
+    """Linearize every observation and compute its own innovation covariance and NIS.
+
+    Per observation i (landmark slot s)::
+
+        S_i = H_p Σ_pp H_pᵀ + H_p Σ_ps H_lᵀ + H_l Σ_sp H_pᵀ + H_l Σ_ss H_lᵀ + V
+        NIS_i = r_iᵀ S_i⁻¹ r_i,   r_i = z_i − ẑ_i
+
+    Returns (r, H_pose, H_lm, in_front, nis); NIS is +inf where the landmark is behind
+    the camera.
+    """
+    z_hat, Hp, Hl, in_front = model.predict(state.imu_T_world, state.p_lm_in_world[slots])
+    if N_pose is not None:
+        Hp, Hl = oc_project(Hp, Hl, N_pose, state.lm_null[slots])
+    r = z - z_hat
+    P_pp, P_ps, P_ss = _gather_blocks(state, slots)
+    HpPps = Hp @ P_ps  # (k, 4, 3)
+    cross = HpPps @ np.swapaxes(Hl, 1, 2)
+    S = Hp @ P_pp @ np.swapaxes(Hp, 1, 2) + cross + np.swapaxes(cross, 1, 2) + Hl @ P_ss @ np.swapaxes(Hl, 1, 2) + V
+    nis = np.full(len(slots), np.inf)
+    if np.any(in_front):
+        nis[in_front] = innovation_nis(r[in_front], S[in_front])
+    return r, Hp, Hl, in_front, nis
+
+
+def oc_project(Hp: np.ndarray, Hl: np.ndarray, N_pose: np.ndarray, N_lm: np.ndarray):
+    """Observability-constrained Jacobians (Huang et al. 2010; Hesch et al. 2014).
+
+    The global pose of the map is unobservable: moving world and landmarks together by
+    exp(ε) changes no observation. With the pose error δ = −Ad(μ) ε and landmark error
+    N_j ε, every observation's Jacobian H = [H_p, H_l] must satisfy H N = 0,
+    N = [N_pose; N_j]. Linearizing at estimates that change from frame to frame breaks
+    this and gives the filter spurious information along those directions (the classic
+    EKF-SLAM inconsistency). The constrained Jacobian is the closest one (Frobenius) that
+    keeps the nullspace::
+
+        H* = H − H N (Nᵀ N)⁻¹ Nᵀ
+    """
+    k = Hp.shape[0]
+    N = np.empty((k, 9, 6))
+    N[:, :6, :] = N_pose
+    N[:, 6:, :] = N_lm
+    H = np.concatenate([Hp, Hl], axis=2)  # (k, 4, 9)
+    HN = H @ N  # (k, 4, 6)
+    NtN = np.swapaxes(N, 1, 2) @ N  # (k, 6, 6)
+    X = np.linalg.solve(NtN, np.swapaxes(N, 1, 2))  # (Nᵀ N)⁻¹ Nᵀ  (k, 6, 9)
+    Hs = H - HN @ X
+    return np.ascontiguousarray(Hs[:, :, :6]), np.ascontiguousarray(Hs[:, :, 6:])
+
+
+def _apply_correction(state: SlamState, dx: np.ndarray) -> None:
+    """μ_pose ← exp(δ_p^) μ_pose;  m ← m + δ_m  (the report's split of K (z − ẑ))."""
+    state.imu_T_world = se3_exp(dx[:POSE_DIM]) @ state.imu_T_world
+    if state.n_landmarks:
+        state.p_lm_in_world = state.p_lm_in_world + dx[POSE_DIM:].reshape(-1, 3)
+
+
+def _innovation_terms(P: np.ndarray, rows: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray):
+    """Σ Hᵀ (n x 4k) and the Cholesky factor L of S = H Σ Hᵀ + I ⊗ V, from the blocks."""
+    k = Hp.shape[0]
+    n = P.shape[0]
+    # Σ Hᵀ, column block i: Σ[:, :6] H_p,iᵀ + Σ[:, rows_i] H_l,iᵀ
+    PHt = np.einsum("nc,kjc->nkj", P[:, :POSE_DIM], Hp)
+    PHt += np.einsum("nkc,kjc->nkj", P[:, rows], Hl)
+    PHt = PHt.reshape(n, 4 * k)
+    # S = H (Σ Hᵀ) + I ⊗ V: the rows of Σ Hᵀ at the pose and at each observed landmark
+    S = np.einsum("kjc,cm->kjm", Hp, PHt[:POSE_DIM])
+    S += np.einsum("kjc,kcm->kjm", Hl, PHt[rows])
+    S = S.reshape(4 * k, 4 * k)
+    S = 0.5 * (S + S.T)
+    S[np.diag_indices(4 * k)] += np.tile(np.diag(V), k)  # V is diagonal: + I ⊗ V
+    return PHt, np.linalg.cholesky(S)  # S = L Lᵀ
+
+
+def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
+                V: np.ndarray) -> None:
+    """Joint EKF update of pose and landmarks with k accepted observations (in place).
+
+    Block-sparse form of the report's update::
+
+        Σ Hᵀ = Σ[:, pose] H_pᵀ + Σ[:, s_i] H_lᵀ          (n x 4k), from the blocks
+        S    = H Σ Hᵀ + I ⊗ V                              (4k x 4k)
+        S    = L Lᵀ                                        (Cholesky)
+        A    = Σ Hᵀ L⁻ᵀ                                    (so K S Kᵀ = A Aᵀ)
+        δ    = K r = A (L⁻¹ r)
+        Σ   ← Σ − A Aᵀ = Σ − K S Kᵀ                        (symmetric rank-4k form)
+
+    Raises numpy.linalg.LinAlgError when S is not positive definite.
+    """
+    k = len(slots)
+    if k == 0:
+        return
+    P = state.cov
+    rows = state.landmark_rows(slots)  # (k, 3)
+    PHt, L = _innovation_terms(P, rows, Hp, Hl, V)
+    A = solve_triangular(L, PHt.T, lower=True, check_finite=False).T  # A = Σ Hᵀ L⁻ᵀ
+    y = solve_triangular(L, r.reshape(-1), lower=True, check_finite=False)  # y = L⁻¹ r
+    dx = A @ y  # δ = K r = Σ Hᵀ S⁻¹ r
+    P -= A @ A.T  # Σ ← Σ − K S Kᵀ
+    _apply_correction(state, dx)
+
+
+def slam_update_reference(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
+                          V: np.ndarray) -> None:
+    """The plain (dense) formulation of :func:`slam_update`, for tests: builds the full
+    4k x n Jacobian and applies the Joseph form ``(I − K H) Σ (I − K H)ᵀ + K (I ⊗ V) Kᵀ``."""
+    k = len(slots)
+    if k == 0:
+        return
+    n = state.dim
+    H = np.zeros((4 * k, n))
+    rows = state.landmark_rows(slots)
+    for i in range(k):
+        H[4 * i:4 * i + 4, :POSE_DIM] = Hp[i]
+        H[4 * i:4 * i + 4, rows[i]] = Hl[i]
+    P = state.cov.copy()
+    R = np.kron(np.eye(k), V)  # I ⊗ V
+    S = H @ P @ H.T + R  # S = H Σ Hᵀ + I ⊗ V
+    K = P @ H.T @ np.linalg.inv(S)  # K = Σ Hᵀ S⁻¹
+    dx = K @ r.reshape(-1)  # δ = K (z − ẑ)
+    IKH = np.eye(n) - K @ H
+    state.cov[...] = IKH @ P @ IKH.T + K @ R @ K.T  # Joseph form
+    _apply_correction(state, dx)
+
+
+def _init_geometry(model: StereoModel, imu_T_world: np.ndarray, pixels: np.ndarray):
+    """Triangulate observations into the world and return (p_lm_in_world, G_pose, G_pix).
+
+    m = (μ⁻¹ imu_T_cam tri(z)), so with T = exp(δ^) μ:
+        dm/dδ = −[μ⁻¹ (imu_T_cam p_c)^⊙]_{0:3}              (k, 3, 6)
+        dm/dz = R_wi R_ic dtri/dz                             (k, 3, 4)
+    """
+    cam = model.camera
+    p_c = cam.triangulate(pixels)  # (k, 3) in the left camera
+    p_i = p_c @ model.imu_T_cam[:3, :3].T + model.imu_T_cam[:3, 3]  # imu_T_cam p_c
+    world_T_imu = se3_inverse(imu_T_world)
+    p_w = p_i @ world_T_imu[:3, :3].T + world_T_imu[:3, 3]
+    G_pose = -(world_T_imu @ se3_odot(p_i))[:, :3, :]
+    G_pix = (world_T_imu[:3, :3] @ model.imu_T_cam[:3, :3]) @ cam.triangulation_jacobian(pixels)
+    return p_w, G_pose, G_pix
+
+
+def slam_initialize_landmarks(state: SlamState, model: StereoModel, ids: np.ndarray, pixels: np.ndarray,
+                              V: np.ndarray, N_pose: np.ndarray | None = None) -> np.ndarray:
+    """Add landmarks to the joint state from one stereo observation each (guards already applied).
+
+    With G_p = dm/dδ and G_z = dm/dz (see :func:`_init_geometry`)::
+
+        Σ_mm = G_p Σ_pp G_pᵀ + G_z V G_zᵀ,   Σ_m,x = G_p Σ_p,x   for every x in the state
+
+    (new landmarks of the same frame are correlated through the pose: Σ_ab = G_a Σ_pp G_bᵀ).
+    Returns their slots.
+    """
+    k = len(ids)
+    if k == 0:
+        return np.zeros(0, dtype=np.int64)
+    p_w, G_pose, G_pix = _init_geometry(model, state.imu_T_world, pixels)
+    Gp = G_pose.reshape(3 * k, POSE_DIM)
+    n = state.dim
+    cross = Gp @ state.cov[:POSE_DIM, :n]  # Σ_m,x = G_p Σ_p,x
+    new = Gp @ state.pose_cov @ Gp.T  # G_p Σ_pp G_pᵀ
+    pix_cov = G_pix @ V @ np.swapaxes(G_pix, 1, 2)  # G_z V G_zᵀ per landmark
+    for i in range(k):
+        new[3 * i:3 * i + 3, 3 * i:3 * i + 3] += pix_cov[i]
+    null = G_pose @ N_pose if N_pose is not None else None  # N_m = G_p N_pose
+    return state.add_landmarks(ids, p_w, cross, new, null)
+
+
+# ------------------------------------------------------------------ mapping (known poses)
+
+
+def mapping_initialize(model: StereoModel, imu_T_world: np.ndarray, pixels: np.ndarray, V: np.ndarray):
+    """(p_lm_in_world (k, 3), covariance (k, 3, 3)) of landmarks triangulated at a known pose:
+    Σ = G_z V G_zᵀ."""
+    p_w, _, G_pix = _init_geometry(model, imu_T_world, pixels)
+    return p_w, G_pix @ V @ np.swapaxes(G_pix, 1, 2)
+
+
+def mapping_update(model: StereoModel, imu_T_world: np.ndarray, mean: np.ndarray, cov: np.ndarray,
+                   z: np.ndarray, V: np.ndarray, gate: float):
+    """EKF update of independent landmarks at a known pose (batched over k landmarks).
+
+    Given the poses, landmarks are independent and H is block diagonal, so the report's
+    3M x 3M update splits exactly into 3x3 blocks::
+
+        S = H Σ Hᵀ + V,  K = Σ Hᵀ S⁻¹,  m ← m + K (z − ẑ),  Σ ← Σ − K S Kᵀ
+
+    Returns (new mean, new cov, accepted mask, nis). Rejected rows are left unchanged.
+    """
+    k = mean.shape[0]
+    if k == 0:
+        return mean, cov, np.zeros(0, dtype=bool), np.zeros(0)
+    z_hat, _, H, in_front = model.predict(imu_T_world, mean, with_pose_jacobian=False)
+    r = z - z_hat
+    PHt = cov @ np.swapaxes(H, 1, 2)  # Σ Hᵀ  (k, 3, 4)
+    S = H @ PHt + V  # H Σ Hᵀ + V
+    S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    nis = np.full(k, np.inf)
+    if np.any(in_front):
+        nis[in_front] = innovation_nis(r[in_front], S[in_front])
+    ok = in_front & (nis <= gate)
+    new_mean = mean.copy()
+    new_cov = cov.copy()
+    if np.any(ok):
+        K = np.swapaxes(np.linalg.solve(S[ok], np.swapaxes(PHt[ok], 1, 2)), 1, 2)  # K = Σ Hᵀ S⁻¹ (S symmetric)
+        new_mean[ok] = mean[ok] + np.einsum("kij,kj->ki", K, r[ok])  # m + K r
+        c = cov[ok] - K @ S[ok] @ np.swapaxes(K, 1, 2)  # Σ − K S Kᵀ
+        new_cov[ok] = 0.5 * (c + np.swapaxes(c, 1, 2))
+    return new_mean, new_cov, ok, nis
