@@ -1,0 +1,90 @@
+"""``vislam eval EST GT --out DIR``: evaluate an estimated trajectory against ground truth.
+
+Prints a table of APE / RPE / KITTI errors and writes ``DIR/metrics.json`` and
+``DIR/error_over_distance.png``. The numbers come from
+:func:`vislam.tools.evaluation.evaluate_files`; this module only parses, prints and saves.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from vislam.errors import ConfigError, OutputError
+from vislam.tools.evaluation import (
+    DEFAULT_MAX_DIFF_S,
+    GT_FORMATS,
+    GT_FRAMES,
+    evaluate_files,
+    format_table,
+    plot_error_over_distance,
+    write_metrics_json,
+)
+
+__all__ = ["register", "run"]
+
+METRICS_FILE = "metrics.json"
+FIGURE_FILE = "error_over_distance.png"
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "eval",
+        help="evaluate an estimated trajectory against ground truth",
+        description="Evaluate an estimated world_T_imu trajectory (KITTI or TUM file, detected from the number "
+        "of values per line) against ground truth: APE (SE(3)-aligned and not aligned), RPE over 1 frame and "
+        "100 m, and the KITTI odometry metric. Prints a table and writes DIR/metrics.json and "
+        "DIR/error_over_distance.png.",
+    )
+    parser.add_argument("est", metavar="EST", help="estimated trajectory (KITTI: 12 values per line; TUM: 8)")
+    parser.add_argument("gt", metavar="GT", help="ground-truth trajectory")
+    parser.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")
+    parser.add_argument("--gt-format", choices=GT_FORMATS, default="kitti",
+                        help="ground-truth file format: kitti (line i = frame i, matched by index) or tum "
+                        "(timestamped, matched by time) (default: kitti)")
+    parser.add_argument("--gt-frame", choices=GT_FRAMES, default="imu",
+                        help="body frame of the ground-truth poses: imu, or cam for left-camera poses (converted "
+                        "with the dataset's cam_T_imu; needs --dataset) (default: imu)")
+    parser.add_argument("--dataset", metavar="DATA",
+                        help="the dataset (.npz) the estimate was computed from: supplies cam_T_imu and the "
+                        "frame timestamps")
+    parser.add_argument("--max-diff", type=float, default=DEFAULT_MAX_DIFF_S, metavar="SECONDS",
+                        help=f"largest time difference of matched poses, for timestamp association "
+                        f"(default: {DEFAULT_MAX_DIFF_S:g})")
+    parser.add_argument("--title", help="figure title (default: the two file names)")
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    if args.gt_frame == "cam" and not args.dataset:
+        raise ConfigError(
+            "--gt-frame cam needs --dataset DATA: the dataset's cam_T_imu converts the camera ground truth to the IMU"
+        )
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: exists and is not a directory (--out expects a directory)")
+    sequence = None
+    if args.dataset:
+        from vislam.tools.dataset_io import load_sequence
+
+        sequence = load_sequence(args.dataset)
+    result = evaluate_files(
+        args.est,
+        args.gt,
+        gt_format=args.gt_format,
+        gt_frame=args.gt_frame,
+        sequence=sequence,
+        max_diff_s=args.max_diff,
+    )
+    metrics_path = out / METRICS_FILE
+    figure_path = out / FIGURE_FILE
+    write_metrics_json(result, metrics_path)
+    title = args.title or f"{Path(args.est).name} vs ground truth {Path(args.gt).name}"
+    plot_error_over_distance(result, figure_path, title=title)
+    text = format_table(result) + f"\n\nwrote {metrics_path}\nwrote {figure_path}"
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:  # e.g. `vislam eval ... | head`
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return 0

@@ -1,0 +1,691 @@
+"""Evaluation of an estimated trajectory against ground truth.
+
+* :func:`load_ground_truth` reads a KITTI or TUM ground-truth file and, for left-camera
+  ground truth (``frame="cam"``, what ``groundtruth/*.txt`` of the shared data holds),
+  converts it to the IMU: ``world_T_imu(i) = imu_T_cam @ world_T_cam(i) @ cam_T_imu``.
+* :func:`load_estimate` reads an estimate, KITTI or TUM (detected from the number of
+  values per line).
+* :func:`associate` pairs estimate and ground-truth poses: KITTI ground truth by frame
+  index (both truncated to the shorter length), TUM ground truth by timestamp (evo's
+  ``sync.associate_trajectories``).
+* :func:`evaluate` computes, with evo, the APE (translation part) with SE(3) Umeyama
+  alignment and without alignment, the RPE (translation in m and rotation in deg) over 1
+  frame and over 100 m of ground-truth path, and the KITTI odometry metric of
+  :mod:`vislam.core.metrics`.
+* :func:`plot_error_over_distance`, :func:`write_metrics_json` and :func:`format_table`
+  present an :class:`EvaluationResult`.
+
+Every user mistake (missing or malformed file, ground truth that cannot be matched,
+missing calibration) raises a :class:`~vislam.errors.VislamError` subclass with a
+one-line message.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+from evo import EvoException
+from evo.core import metrics as evo_metrics
+from evo.core import sync as evo_sync
+from evo.core.trajectory import PosePath3D, PoseTrajectory3D
+
+from vislam.core.lie import is_rigid_transform, se3_inverse
+from vislam.core.metrics import KittiOdometryErrors, kitti_odometry_errors, trajectory_distances
+from vislam.errors import ConfigError, GroundTruthError, OutputError
+from vislam.tools.atomic import atomic_path, write_text_atomic
+from vislam.tools.trajectory_io import TrajectoryFile, read_trajectory
+
+__all__ = [
+    "GT_FORMATS",
+    "GT_FRAMES",
+    "DEFAULT_MAX_DIFF_S",
+    "RPE_DISTANCE_M",
+    "ErrorStats",
+    "Association",
+    "EvaluationResult",
+    "camera_to_imu_trajectory",
+    "load_ground_truth",
+    "load_estimate",
+    "associate",
+    "evaluate",
+    "evaluate_files",
+    "plot_error_over_distance",
+    "write_metrics_json",
+    "format_table",
+]
+
+logger = logging.getLogger(__name__)
+
+GT_FORMATS = ("kitti", "tum")
+GT_FRAMES = ("imu", "cam")
+#: Largest time difference (s) of an associated estimate / ground-truth pair. Well below
+#: half the frame interval of KITTI (0.1 s), so that no pose can match two others.
+DEFAULT_MAX_DIFF_S = 0.02
+#: Ground-truth path length (m) between the poses of the distance-based RPE.
+RPE_DISTANCE_M = 100.0
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def camera_to_imu_trajectory(world_T_cam, cam_T_imu) -> np.ndarray:
+    """Left-camera poses -> IMU poses: ``imu_T_cam @ world_T_cam(i) @ cam_T_imu``.
+
+    The camera trajectory's world frame is the first camera frame; the result's world
+    frame is the first IMU frame (``world_T_imu(0) = I`` when ``world_T_cam(0) = I``).
+    """
+    cam_T_imu = np.asarray(cam_T_imu, dtype=np.float64)
+    return se3_inverse(cam_T_imu) @ np.asarray(world_T_cam, dtype=np.float64) @ cam_T_imu
+
+
+def load_ground_truth(path, fmt: str = "kitti", frame: str = "imu", cam_T_imu=None) -> TrajectoryFile:
+    """Read a ground-truth trajectory and return it as ``world_T_imu``.
+
+    Args:
+        path: KITTI or TUM file.
+        fmt: ``"kitti"`` (12 values per line, matched to the estimate by frame index) or
+            ``"tum"`` (timestamped, matched by time).
+        frame: ``"imu"`` when the file holds ``world_T_imu``; ``"cam"`` when it holds the
+            left camera ``world_T_cam`` (converted with ``cam_T_imu``).
+        cam_T_imu: (4, 4) the dataset's transform, required for ``frame="cam"``.
+
+    Raises:
+        GroundTruthError: missing, unreadable or malformed file (message names it).
+        ConfigError: unknown ``fmt``/``frame``, or ``frame="cam"`` without a valid
+            ``cam_T_imu``.
+    """
+    if fmt not in GT_FORMATS:
+        raise ConfigError(f"unknown ground-truth format {fmt!r}; expected one of {', '.join(GT_FORMATS)}")
+    if frame not in GT_FRAMES:
+        raise ConfigError(f"unknown ground-truth frame {frame!r}; expected one of {', '.join(GT_FRAMES)}")
+    if frame == "cam":
+        if cam_T_imu is None:
+            raise ConfigError(
+                f"{path}: camera-frame ground truth needs the dataset's cam_T_imu to be converted to the IMU"
+            )
+        if not is_rigid_transform(cam_T_imu):
+            raise ConfigError("cam_T_imu is not a 4x4 rigid transform")
+    traj = read_trajectory(path, fmt)
+    poses = traj.world_T_body
+    if frame == "cam":
+        poses = camera_to_imu_trajectory(poses, cam_T_imu)
+        logger.info("%s: converted %d left-camera poses to the IMU frame", path, len(traj))
+    return TrajectoryFile(poses, traj.timestamps_s, traj.fmt, traj.path)
+
+
+def load_estimate(path) -> TrajectoryFile:
+    """Read an estimated ``world_T_imu`` trajectory, KITTI (12 values per line) or TUM (8)."""
+    traj = read_trajectory(path)
+    logger.info("%s: %d poses (%s)", path, len(traj), traj.fmt.upper())
+    return traj
+
+
+# ----------------------------------------------------------------------------- association
+
+
+@dataclass(frozen=True, eq=False)
+class Association:
+    """Estimate and ground-truth poses paired one to one.
+
+    Attributes:
+        est_world_T_imu: (n, 4, 4) estimated poses.
+        gt_world_T_imu: (n, 4, 4) ground-truth poses of the same frames.
+        timestamps_s: (n,) times of the pairs (the estimate's), or None when unknown.
+        method: ``"index"`` or ``"timestamp"``.
+        n_estimate: poses in the estimate before association.
+        n_ground_truth: poses in the ground truth before association.
+        max_diff_s: largest time difference allowed (timestamp association only).
+    """
+
+    est_world_T_imu: np.ndarray
+    gt_world_T_imu: np.ndarray
+    timestamps_s: np.ndarray | None
+    method: str
+    n_estimate: int
+    n_ground_truth: int
+    max_diff_s: float | None = None
+
+    @property
+    def n_pairs(self) -> int:
+        return int(self.est_world_T_imu.shape[0])
+
+    def describe(self) -> str:
+        how = "by frame index" if self.method == "index" else f"by timestamp (max. difference {self.max_diff_s:g} s)"
+        return (
+            f"{self.n_pairs} frames compared, matched {how}; "
+            f"estimate has {self.n_estimate} poses, ground truth {self.n_ground_truth}"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "method": self.method,
+            "n_pairs": self.n_pairs,
+            "n_estimate": self.n_estimate,
+            "n_ground_truth": self.n_ground_truth,
+            "max_diff_s": self.max_diff_s,
+        }
+
+
+def _frame_timestamps(traj: TrajectoryFile, dataset_timestamps, what: str) -> np.ndarray | None:
+    """The trajectory's timestamps, or for a KITTI file the dataset's (line i = frame i)."""
+    if traj.timestamps_s is not None:
+        return traj.timestamps_s
+    if dataset_timestamps is None:
+        return None
+    ts = np.asarray(dataset_timestamps, dtype=np.float64).ravel()
+    if len(traj) > ts.shape[0]:
+        raise GroundTruthError(
+            f"{traj.path}: {len(traj)} poses but the dataset has only {ts.shape[0]} frames; "
+            f"this {what} does not belong to the dataset"
+        )
+    return ts[: len(traj)]
+
+
+def associate(
+    est: TrajectoryFile,
+    gt: TrajectoryFile,
+    dataset_timestamps=None,
+    max_diff_s: float = DEFAULT_MAX_DIFF_S,
+) -> Association:
+    """Pair the poses of an estimate with those of the ground truth.
+
+    * KITTI ground truth: line i is frame i. A KITTI estimate is matched by index, both
+      truncated to the shorter length (the shared ground truth covers the first 1101
+      frames of 1104-1106-frame datasets). A TUM estimate is matched by timestamp when
+      ``dataset_timestamps`` give the ground truth its times, by index otherwise.
+    * TUM ground truth: matched by timestamp (evo's ``sync.associate_trajectories``,
+      nearest time within ``max_diff_s``). A KITTI estimate gets its times from
+      ``dataset_timestamps`` (line i = frame i); without them it cannot be matched.
+
+    Raises:
+        GroundTruthError: nothing matches, or fewer than 2 pairs.
+        ConfigError: a KITTI estimate against TUM ground truth without dataset timestamps.
+    """
+    if not (max_diff_s > 0 and math.isfinite(max_diff_s)):
+        raise ConfigError(f"max. time difference must be a positive number of seconds, got {max_diff_s!r}")
+    est_ts = _frame_timestamps(est, dataset_timestamps, "estimate")
+    gt_ts = _frame_timestamps(gt, dataset_timestamps, "ground truth")
+    if gt.fmt == "tum" and est_ts is None:
+        raise ConfigError(
+            f"{est.path}: a KITTI estimate has no timestamps, and the TUM ground truth {gt.path} is matched by "
+            "time; give the dataset (--dataset) to supply the frame times, or a TUM estimate"
+        )
+    by_time = gt.fmt == "tum" or (est.fmt == "tum" and gt_ts is not None)
+    if not by_time:
+        if est.fmt == "tum":
+            logger.warning(
+                "%s: TUM estimate matched to the KITTI ground truth %s by line index (no dataset timestamps "
+                "given); this is right only if the estimate has one pose per dataset frame from frame 0",
+                est.path, gt.path,
+            )
+        n = min(len(est), len(gt))
+        assoc = Association(
+            est.world_T_body[:n].copy(),
+            gt.world_T_body[:n].copy(),
+            est_ts[:n].copy() if est_ts is not None else None,
+            "index",
+            len(est),
+            len(gt),
+        )
+    else:
+        traj_est = PoseTrajectory3D(poses_se3=list(est.world_T_body), timestamps=est_ts, name=str(est.path))
+        traj_gt = PoseTrajectory3D(poses_se3=list(gt.world_T_body), timestamps=gt_ts, name=str(gt.path))
+        try:
+            traj_est, traj_gt = evo_sync.associate_trajectories(traj_est, traj_gt, max_diff=max_diff_s)
+        except EvoException:
+            raise GroundTruthError(
+                f"{est.path} and {gt.path}: no timestamps match within {max_diff_s:g} s (estimate "
+                f"{est_ts[0]:.6f}..{est_ts[-1]:.6f} s, ground truth {gt_ts[0]:.6f}..{gt_ts[-1]:.6f} s)"
+            ) from None
+        for traj in (traj_est, traj_gt):
+            if np.any(np.diff(traj.timestamps) <= 0):
+                raise GroundTruthError(
+                    f"{est.path} and {gt.path}: a pose matches two others within {max_diff_s:g} s; "
+                    "use a smaller max. time difference"
+                )
+        assoc = Association(
+            np.array(traj_est.poses_se3),
+            np.array(traj_gt.poses_se3),
+            np.array(traj_est.timestamps, dtype=np.float64),
+            "timestamp",
+            len(est),
+            len(gt),
+            float(max_diff_s),
+        )
+    if assoc.n_pairs < 2:
+        raise GroundTruthError(
+            f"{est.path} and {gt.path}: only {assoc.n_pairs} pose pair(s) in common; at least 2 are needed"
+        )
+    logger.info("%s", assoc.describe())
+    return assoc
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    """Statistics of an error array (evo's): rmse, mean, median, std, min, max; NaN when
+    the metric could not be computed (``n == 0``)."""
+
+    rmse: float = float("nan")
+    mean: float = float("nan")
+    median: float = float("nan")
+    std: float = float("nan")
+    min: float = float("nan")
+    max: float = float("nan")
+    n: int = 0
+
+    @classmethod
+    def from_metric(cls, metric: evo_metrics.PE) -> "ErrorStats":
+        s = metric.get_all_statistics()
+        return cls(
+            rmse=float(s["rmse"]),
+            mean=float(s["mean"]),
+            median=float(s["median"]),
+            std=float(s["std"]),
+            min=float(s["min"]),
+            max=float(s["max"]),
+            n=int(np.size(metric.error)),
+        )
+
+    def to_dict(self) -> dict[str, float]:
+        return {"rmse": self.rmse, "mean": self.mean, "median": self.median, "std": self.std,
+                "min": self.min, "max": self.max, "n": self.n}
+
+
+@dataclass(frozen=True, eq=False)
+class EvaluationResult:
+    """Errors of an estimate against ground truth (see :func:`evaluate`).
+
+    Attributes:
+        n_frames_compared: number of associated pose pairs.
+        path_length_m: length of the ground-truth path over the compared frames (m).
+        ape: APE translation (m) after SE(3) Umeyama alignment (evo, ``align=True,
+            correct_scale=False``).
+        ape_unaligned: APE translation (m) without alignment.
+        rpe_trans: RPE translation (m) between consecutive frames (delta = 1 frame).
+        rpe_rot: RPE rotation angle (deg), delta = 1 frame.
+        rpe_trans_100m: RPE translation (m) between poses 100 m apart along the ground
+            truth (evo, delta = 100 m, consecutive pairs chosen on the ground truth); NaN
+            when the path is shorter.
+        rpe_rot_100m: RPE rotation angle (deg), delta = 100 m.
+        kitti: the KITTI odometry errors (:class:`~vislam.core.metrics.KittiOdometryErrors`).
+        aligned_position_error_m: (n,) position error of each frame after alignment (m).
+        unaligned_position_error_m: (n,) position error of each frame without alignment (m).
+        distance_along_gt_m: (n,) distance travelled along the ground truth (m).
+        est_world_T_imu: (n, 4, 4) the estimate as given.
+        est_world_T_imu_aligned: (n, 4, 4) the estimate after alignment (``alignment @ est``).
+        gt_world_T_imu: (n, 4, 4) the ground truth.
+        alignment: (4, 4) SE(3) transform from the estimate's world frame into the
+            ground truth's (identity, with a note, when alignment is impossible).
+        timestamps_s: (n,) times of the pairs, or None.
+        notes: warnings about the evaluation (e.g. a metric that could not be computed).
+        info: provenance (files, association), copied into :meth:`to_dict`.
+    """
+
+    n_frames_compared: int
+    path_length_m: float
+    ape: ErrorStats
+    ape_unaligned: ErrorStats
+    rpe_trans: ErrorStats
+    rpe_rot: ErrorStats
+    rpe_trans_100m: ErrorStats
+    rpe_rot_100m: ErrorStats
+    kitti: KittiOdometryErrors
+    aligned_position_error_m: np.ndarray
+    unaligned_position_error_m: np.ndarray
+    distance_along_gt_m: np.ndarray
+    est_world_T_imu: np.ndarray
+    est_world_T_imu_aligned: np.ndarray
+    gt_world_T_imu: np.ndarray
+    alignment: np.ndarray
+    timestamps_s: np.ndarray | None = None
+    notes: tuple[str, ...] = ()
+    info: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able summary (NaN becomes None, see :func:`write_metrics_json`).
+
+        Flat keys ``ape_rmse_m``, ``ape_mean_m``, ``ape_median_m``, ``ape_max_m``,
+        ``ape_std_m`` (likewise ``ape_unaligned_*_m``, ``rpe_trans_*_m``,
+        ``rpe_rot_*_deg``, ``rpe_trans_100m_*_m``, ``rpe_rot_100m_*_deg``),
+        ``kitti_t_pct``, ``kitti_r_deg_per_100m``, ``kitti_segments``,
+        ``kitti_by_length`` (length in m -> t_pct, r_deg_per_100m, segments),
+        ``n_frames_compared``, ``path_length_m``, ``notes`` and the ``info`` entries.
+        """
+        out: dict[str, Any] = {
+            "n_frames_compared": int(self.n_frames_compared),
+            "path_length_m": float(self.path_length_m),
+        }
+        for prefix, stats, unit in (
+            ("ape", self.ape, "m"),
+            ("ape_unaligned", self.ape_unaligned, "m"),
+            ("rpe_trans", self.rpe_trans, "m"),
+            ("rpe_rot", self.rpe_rot, "deg"),
+            ("rpe_trans_100m", self.rpe_trans_100m, "m"),
+            ("rpe_rot_100m", self.rpe_rot_100m, "deg"),
+        ):
+            for stat in ("rmse", "mean", "median", "max", "std"):
+                out[f"{prefix}_{stat}_{unit}"] = float(getattr(stats, stat))
+        k = self.kitti
+        out["kitti_t_pct"] = float(k.t_pct)
+        out["kitti_r_deg_per_100m"] = float(k.r_deg_per_100m)
+        out["kitti_segments"] = int(k.n_segments)
+        out["kitti_by_length"] = {
+            f"{length:g}": {
+                "t_pct": float(t),
+                "r_deg_per_100m": float(r),
+                "segments": int(n),
+            }
+            for length, t, r, n in zip(k.lengths_m, k.t_pct_by_length, k.r_deg_per_100m_by_length,
+                                       k.n_segments_by_length)
+        }
+        out["alignment_gt_world_T_est_world"] = self.alignment.tolist()
+        out["notes"] = list(self.notes)
+        for key, value in self.info.items():
+            out.setdefault(key, value)
+        return out
+
+
+def _check_poses(a, name: str) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 3 or a.shape[1:] != (4, 4):
+        raise ValueError(f"{name} must have shape (N, 4, 4), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise GroundTruthError(f"{name} contains non-finite poses")
+    return a
+
+
+def _project_rotations(poses: np.ndarray) -> np.ndarray:
+    """Replace each rotation block by the nearest rotation (SVD), so that files printed
+    with few digits pass evo's strict SO(3) checks; positions are untouched."""
+    out = poses.copy()
+    U, _, Vt = np.linalg.svd(poses[:, :3, :3])
+    D = np.ones((poses.shape[0], 3))
+    D[:, 2] = np.sign(np.linalg.det(U @ Vt))
+    out[:, :3, :3] = (U * D[:, None, :]) @ Vt
+    out[:, 3, :] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def _rpe(ref, est, relation, delta, unit) -> evo_metrics.RPE:
+    metric = evo_metrics.RPE(relation, delta=delta, delta_unit=unit, all_pairs=False, pairs_from_reference=True)
+    metric.process_data((ref, est))
+    return metric
+
+
+def evaluate(
+    est_world_T_imu,
+    gt_world_T_imu,
+    timestamps=None,
+    *,
+    info: Mapping[str, Any] | None = None,
+) -> EvaluationResult:
+    """Errors of associated estimate / ground-truth poses (same length, frame i with i).
+
+    APE and RPE are computed by evo (``evo.core.metrics``); the KITTI metric by
+    :func:`vislam.core.metrics.kitti_odometry_errors`. Rotation blocks are projected onto
+    SO(3) first (a no-op up to rounding for proper rotations). A metric that cannot be
+    computed (a straight-line path cannot be aligned; a path shorter than 100 m has no
+    100 m RPE or KITTI segment) is NaN, with a note in ``notes``.
+    """
+    est = _check_poses(est_world_T_imu, "estimate")
+    gt = _check_poses(gt_world_T_imu, "ground truth")
+    if est.shape[0] != gt.shape[0]:
+        raise ValueError(f"estimate has {est.shape[0]} poses, ground truth {gt.shape[0]}; associate them first")
+    n = est.shape[0]
+    if n < 2:
+        raise GroundTruthError(f"only {n} pose pair(s) to compare; at least 2 are needed")
+    ts = None
+    if timestamps is not None:
+        ts = np.asarray(timestamps, dtype=np.float64).ravel()
+        if ts.shape[0] != n:
+            raise ValueError(f"{ts.shape[0]} timestamps for {n} poses")
+    est = _project_rotations(est)
+    gt = _project_rotations(gt)
+    notes: list[str] = []
+
+    ref = PosePath3D(poses_se3=list(gt.copy()))
+    est_path = PosePath3D(poses_se3=list(est.copy()))
+
+    # APE, not aligned.
+    ape_unaligned = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape_unaligned.process_data((ref, est_path))
+
+    # APE with SE(3) Umeyama alignment (as evo_ape -a).
+    aligned = copy.deepcopy(est_path)
+    try:
+        r_a, t_a, _ = aligned.align(ref, correct_scale=False)
+        alignment = np.eye(4)
+        alignment[:3, :3] = r_a
+        alignment[:3, 3] = t_a
+        ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+        ape.process_data((ref, aligned))
+        ape_stats = ErrorStats.from_metric(ape)
+        aligned_err = np.asarray(ape.error, dtype=np.float64)
+        est_aligned = np.array(aligned.poses_se3)
+    except EvoException as exc:
+        notes.append(f"SE(3) alignment impossible ({exc}); aligned APE not computed")
+        logger.warning("%s", notes[-1])
+        alignment = np.eye(4)
+        ape_stats = ErrorStats()
+        aligned_err = np.full(n, np.nan)
+        est_aligned = est.copy()
+
+    # RPE over one frame and over 100 m of ground-truth path.
+    rel = evo_metrics.PoseRelation
+    rpe_trans = ErrorStats.from_metric(_rpe(ref, est_path, rel.translation_part, 1, evo_metrics.Unit.frames))
+    rpe_rot = ErrorStats.from_metric(_rpe(ref, est_path, rel.rotation_angle_deg, 1, evo_metrics.Unit.frames))
+    try:
+        rpe_trans_100 = ErrorStats.from_metric(
+            _rpe(ref, est_path, rel.translation_part, RPE_DISTANCE_M, evo_metrics.Unit.meters))
+        rpe_rot_100 = ErrorStats.from_metric(
+            _rpe(ref, est_path, rel.rotation_angle_deg, RPE_DISTANCE_M, evo_metrics.Unit.meters))
+    except EvoException:
+        notes.append(f"ground truth shorter than {RPE_DISTANCE_M:g} m: no {RPE_DISTANCE_M:g} m RPE")
+        rpe_trans_100 = rpe_rot_100 = ErrorStats()
+
+    kitti = kitti_odometry_errors(est, gt)
+    if not kitti.has_segments:
+        notes.append(f"ground truth shorter than {kitti.lengths_m.min():g} m: no KITTI odometry segments")
+    distances = trajectory_distances(gt)
+    result = EvaluationResult(
+        n_frames_compared=n,
+        path_length_m=float(distances[-1]),
+        ape=ape_stats,
+        ape_unaligned=ErrorStats.from_metric(ape_unaligned),
+        rpe_trans=rpe_trans,
+        rpe_rot=rpe_rot,
+        rpe_trans_100m=rpe_trans_100,
+        rpe_rot_100m=rpe_rot_100,
+        kitti=kitti,
+        aligned_position_error_m=aligned_err,
+        unaligned_position_error_m=np.asarray(ape_unaligned.error, dtype=np.float64),
+        distance_along_gt_m=distances,
+        est_world_T_imu=est,
+        est_world_T_imu_aligned=est_aligned,
+        gt_world_T_imu=gt,
+        alignment=alignment,
+        timestamps_s=ts,
+        notes=tuple(notes),
+        info=dict(info or {}),
+    )
+    logger.info(
+        "APE %.4f m (aligned), KITTI %.3f %% / %.4f deg/100 m over %d frames",
+        ape_stats.rmse, kitti.t_pct, kitti.r_deg_per_100m, n,
+    )
+    return result
+
+
+def evaluate_files(
+    est_path,
+    gt_path,
+    gt_format: str = "kitti",
+    gt_frame: str = "imu",
+    sequence=None,
+    max_diff_s: float = DEFAULT_MAX_DIFF_S,
+) -> EvaluationResult:
+    """Load, associate and evaluate: the whole of ``vislam eval``.
+
+    ``sequence`` (a :class:`~vislam.core.sequence.Sequence`, optional) supplies
+    ``cam_T_imu`` for ``gt_frame="cam"`` and the frame times of KITTI files.
+    """
+    if gt_frame == "cam" and sequence is None:
+        raise ConfigError("camera-frame ground truth needs the dataset (for cam_T_imu)")
+    cam_T_imu = sequence.cam_T_imu if sequence is not None else None
+    gt = load_ground_truth(gt_path, gt_format, gt_frame, cam_T_imu)
+    est = load_estimate(est_path)
+    assoc = associate(est, gt, sequence.timestamps_s if sequence is not None else None, max_diff_s)
+    info = {
+        "estimate": str(est_path),
+        "estimate_format": est.fmt,
+        "ground_truth": str(gt_path),
+        "ground_truth_format": gt.fmt,
+        "ground_truth_frame": gt_frame,
+        "dataset": getattr(sequence, "source", None) if sequence is not None else None,
+        "association": assoc.to_dict(),
+    }
+    return evaluate(assoc.est_world_T_imu, assoc.gt_world_T_imu, assoc.timestamps_s, info=info)
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def _json_safe(value):
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_safe(value.tolist())
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    return value
+
+
+def write_metrics_json(result: EvaluationResult, path) -> None:
+    """Write ``result.to_dict()`` as strict JSON (NaN -> null), atomically."""
+    text = json.dumps(_json_safe(result.to_dict()), indent=2, allow_nan=False) + "\n"
+    try:
+        write_text_atomic(path, text)
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot write: {exc.strerror or exc}") from None
+
+
+def _fmt(x: float, spec: str = ".4f") -> str:
+    return "n/a" if x is None or not math.isfinite(x) else format(x, spec)
+
+
+def format_table(result: EvaluationResult) -> str:
+    """A readable text table of the result."""
+    r = result
+    lines = []
+    assoc = r.info.get("association") if r.info else None
+    header = f"frames compared: {r.n_frames_compared}"
+    if assoc:
+        how = "by frame index" if assoc["method"] == "index" else "by timestamp"
+        header += (f" (matched {how}; estimate {assoc['n_estimate']} poses, "
+                   f"ground truth {assoc['n_ground_truth']})")
+    lines.append(header)
+    lines.append(f"ground-truth path length: {r.path_length_m:.2f} m")
+    lines.append("")
+    w = 38
+    lines.append(f"{'metric':<{w}}{'rmse':>10}{'mean':>10}{'median':>10}{'max':>10}{'std':>10}")
+    rows = (
+        ("APE translation, SE(3)-aligned (m)", r.ape),
+        ("APE translation, not aligned (m)", r.ape_unaligned),
+        ("RPE translation, 1 frame (m)", r.rpe_trans),
+        ("RPE rotation, 1 frame (deg)", r.rpe_rot),
+        (f"RPE translation, {RPE_DISTANCE_M:g} m (m)", r.rpe_trans_100m),
+        (f"RPE rotation, {RPE_DISTANCE_M:g} m (deg)", r.rpe_rot_100m),
+    )
+    for label, s in rows:
+        lines.append(f"{label:<{w}}" + "".join(f"{_fmt(getattr(s, k)):>10}"
+                                              for k in ("rmse", "mean", "median", "max", "std")))
+    k = r.kitti
+    lines.append("")
+    if k.has_segments:
+        lines.append(
+            f"KITTI odometry ({k.n_segments} segments): translation {_fmt(k.t_pct, '.3f')} %, "
+            f"rotation {_fmt(k.r_deg_per_100m, '.4f')} deg/100 m"
+        )
+        lines.append(f"{'length (m)':>12}{'segments':>10}{'t (%)':>10}{'r (deg/100 m)':>16}")
+        for length, n, t, rot in zip(k.lengths_m, k.n_segments_by_length, k.t_pct_by_length,
+                                     k.r_deg_per_100m_by_length):
+            lines.append(f"{length:>12g}{n:>10d}{_fmt(t, '.3f'):>10}{_fmt(rot, '.4f'):>16}")
+    else:
+        lines.append(f"KITTI odometry: n/a (ground truth shorter than {k.lengths_m.min():g} m)")
+    for note in r.notes:
+        lines.append(f"note: {note}")
+    return "\n".join(lines)
+
+
+def plot_error_over_distance(result: EvaluationResult, path, title: str | None = None) -> None:
+    """PNG figure (8x6 in, 120 dpi), written atomically: aligned APE translation error vs
+    distance travelled along the ground truth (top) and the KITTI translational error per
+    segment length (bottom)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    r = result
+    fig = Figure(figsize=(8, 6), dpi=120, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax1, ax2 = fig.subplots(2, 1)
+    fig.suptitle(title or "Trajectory error against ground truth", fontsize=13)
+
+    d = r.distance_along_gt_m
+    if np.all(np.isnan(r.aligned_position_error_m)):
+        ax1.plot(d, r.unaligned_position_error_m, color="tab:blue", lw=1.2, label="not aligned")
+        ax1.set_title("APE translation, not aligned (alignment impossible)", fontsize=10)
+        ax1.legend(loc="upper left", fontsize=9)
+    else:
+        ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.2, label="per frame")
+        ax1.axhline(r.ape.rmse, color="tab:red", ls="--", lw=1.0, label=f"RMSE {r.ape.rmse:.3f} m")
+        ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10)
+        ax1.legend(loc="upper left", fontsize=9)
+    ax1.set_xlabel("distance travelled along ground truth (m)")
+    ax1.set_ylabel("position error (m)")
+    ax1.set_xlim(0, max(float(d[-1]), 1e-9))
+    ax1.set_ylim(bottom=0)
+    ax1.grid(True, alpha=0.3)
+
+    k = r.kitti
+    lengths = k.lengths_m
+    if k.has_segments:
+        jitter = (np.random.default_rng(0).random(k.n_segments) - 0.5) * 0.25 * np.min(np.diff(lengths)) \
+            if lengths.size > 1 else np.zeros(k.n_segments)
+        ax2.scatter(k.segment_length_m + jitter, k.t_pct_segments, s=8, color="0.6", alpha=0.6,
+                    label="each segment", zorder=2)
+        has = k.n_segments_by_length > 0
+        ax2.plot(lengths[has], k.t_pct_by_length[has], "o-", color="tab:orange", lw=1.5, ms=5,
+                 label="mean per length", zorder=3)
+        ax2.set_title(
+            f"KITTI odometry error: {k.t_pct:.2f} % translation, {k.r_deg_per_100m:.3f} deg/100 m rotation "
+            f"({k.n_segments} segments)", fontsize=10)
+        ax2.legend(loc="upper right", fontsize=9)
+        ax2.set_ylim(bottom=0)
+    else:
+        ax2.text(0.5, 0.5, f"ground truth shorter than {lengths.min():g} m:\nno KITTI segments",
+                 ha="center", va="center", transform=ax2.transAxes, fontsize=11, color="0.3")
+        ax2.set_title("KITTI odometry error", fontsize=10)
+    ax2.set_xticks(lengths)
+    ax2.set_xlim(lengths.min() - 50, lengths.max() + 50)
+    ax2.set_xlabel("segment length (m)")
+    ax2.set_ylabel("translational error (%)")
+    ax2.grid(True, alpha=0.3)
+
+    try:
+        with atomic_path(path, suffix=".png") as tmp:
+            fig.savefig(tmp, format="png", dpi=120)
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot write: {exc.strerror or exc}") from None
