@@ -318,59 +318,61 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
     for t in range(T):
         tic = time.perf_counter()
         try:
-            # ---- 1. prediction
-            if t > 0:
-                predict_state(state, tau[t - 1], u[t - 1], W, last_correction if oc else None)
-            mu_prior = state.imu_T_world
-            # unobservable directions of the pose at the prior (OC variant)
-            N_pose = -se3_adjoint(mu_prior) if oc else None
-            ids_seen, z = obs.frame(t)
-            rep = repeated[obs.frame_offsets[t]:obs.frame_offsets[t + 1]]
-            if split and np.any(rep):
-                slots_rep = state.slot_of[ids_seen[rep]]
-                freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one
-                rep = np.zeros_like(rep)
-            usable = ~rep & ~tracks.rejected[ids_seen]
-            ids, z = ids_seen[usable], z[usable]
-            slot_arr = state.slot_of[ids]
-            live = slot_arr >= 0
-            # ---- 2. update with the landmarks in the state
-            if np.any(live):
-                slots, lids = slot_arr[live], ids[live]
-                r, Hp, Hl, in_front, nis = slam_predict_nis(state, model, slots, z[live], V, N_pose)
-                ok = in_front & (nis <= gate)
-                try:
-                    update(state, slots[ok], r[ok], Hp[ok], Hl[ok], V)
-                except np.linalg.LinAlgError as exc:
-                    raise EstimationError(f"innovation covariance not positive definite at frame {t}: {exc}",
-                                          frame=t) from None
-                # ---- 3. reject landmarks that keep failing the gate
-                bad = tracks.updated(lids, ok, t, stats, options.max_consecutive_gated)
-                freeze(state.slot_of[bad], LANDMARK_REJECTED)
-            # ---- 4. marginalize landmarks whose track ended
-            if not options.keep_all_landmarks and state.n_landmarks:
-                seen[ids_seen] = True  # a skipped repeat keeps its track alive
-                freeze(np.nonzero(~seen[state.landmark_ids])[0], LANDMARK_OK)
-                seen[ids_seen] = False
-            # ---- 5. initialize new landmarks
-            new = ~live
-            if np.any(new):
-                n_ids, n_z = ids[new], z[new]
-                good = initialization_guard(sequence.camera, n_z, options)
-                stats.observations_not_initialized += int((~good).sum())
-                if np.any(good):
-                    g_ids = n_ids[good]
-                    slam_initialize_landmarks(state, model, g_ids, n_z[good], V, N_pose)
-                    tracks.started(g_ids, t)
-                    stats.landmarks_initialized += int(g_ids.size)
-                    stats.observations_used += int(g_ids.size)
-            if oc:
-                last_correction = se3_log(state.imu_T_world @ se3_inverse(mu_prior))
-            stats.max_state_landmarks = max(stats.max_state_landmarks, state.n_landmarks)
-            if not state.is_finite():
-                raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
-            if np.any(np.diagonal(state.cov) < -1e-9):
-                raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
+            # overflow/NaN is detected by the health check below and reported as an error
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                # ---- 1. prediction
+                if t > 0:
+                    predict_state(state, tau[t - 1], u[t - 1], W, last_correction if oc else None)
+                mu_prior = state.imu_T_world
+                # unobservable directions of the pose at the prior (OC variant)
+                N_pose = -se3_adjoint(mu_prior) if oc else None
+                ids_seen, z = obs.frame(t)
+                rep = repeated[obs.frame_offsets[t]:obs.frame_offsets[t + 1]]
+                if split and np.any(rep):
+                    slots_rep = state.slot_of[ids_seen[rep]]
+                    freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one
+                    rep = np.zeros_like(rep)
+                usable = ~rep & ~tracks.rejected[ids_seen]
+                ids, z = ids_seen[usable], z[usable]
+                slot_arr = state.slot_of[ids]
+                live = slot_arr >= 0
+                # ---- 2. update with the landmarks in the state
+                if np.any(live):
+                    slots, lids = slot_arr[live], ids[live]
+                    r, Hp, Hl, in_front, nis = slam_predict_nis(state, model, slots, z[live], V, N_pose)
+                    ok = in_front & (nis <= gate)
+                    try:
+                        update(state, slots[ok], r[ok], Hp[ok], Hl[ok], V)
+                    except np.linalg.LinAlgError as exc:
+                        raise EstimationError(f"innovation covariance not positive definite at frame {t}: {exc}",
+                                              frame=t) from None
+                    # ---- 3. reject landmarks that keep failing the gate
+                    bad = tracks.updated(lids, ok, t, stats, options.max_consecutive_gated)
+                    freeze(state.slot_of[bad], LANDMARK_REJECTED)
+                # ---- 4. marginalize landmarks whose track ended
+                if not options.keep_all_landmarks and state.n_landmarks:
+                    seen[ids_seen] = True  # a skipped repeat keeps its track alive
+                    freeze(np.nonzero(~seen[state.landmark_ids])[0], LANDMARK_OK)
+                    seen[ids_seen] = False
+                # ---- 5. initialize new landmarks
+                new = ~live
+                if np.any(new):
+                    n_ids, n_z = ids[new], z[new]
+                    good = initialization_guard(sequence.camera, n_z, options)
+                    stats.observations_not_initialized += int((~good).sum())
+                    if np.any(good):
+                        g_ids = n_ids[good]
+                        slam_initialize_landmarks(state, model, g_ids, n_z[good], V, N_pose)
+                        tracks.started(g_ids, t)
+                        stats.landmarks_initialized += int(g_ids.size)
+                        stats.observations_used += int(g_ids.size)
+                if oc:
+                    last_correction = se3_log(state.imu_T_world @ se3_inverse(mu_prior))
+                stats.max_state_landmarks = max(stats.max_state_landmarks, state.n_landmarks)
+                if not state.is_finite():
+                    raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
+                if np.any(np.diagonal(state.cov) < -1e-9):
+                    raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
         except (EstimationError, GeometryError) as exc:
             error = str(exc) if isinstance(exc, EstimationError) else f"frame {t}: {exc}"
             logger.error("%s; stopping with a partial result", error)
