@@ -39,7 +39,7 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from vislam.core.lie import se3_adjoint, se3_inverse, se3_log
+from vislam.core.lie import se3_adjoint, se3_inverse
 from vislam.core.options import MODES, FilterOptions
 from vislam.core.propagation import dead_reckoning, motion_increments, predict_state
 from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunResult, RunStats
@@ -321,6 +321,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
             # overflow/NaN is detected by the health check below and reported as an error
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                 # ---- 1. prediction
+                correction = np.zeros(6)
                 if t > 0:
                     predict_state(state, tau[t - 1], u[t - 1], W, last_correction if oc else None)
                 mu_prior = state.imu_T_world
@@ -342,7 +343,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                     r, Hp, Hl, in_front, nis = slam_predict_nis(state, model, slots, z[live], V, N_pose)
                     ok = in_front & (nis <= gate)
                     try:
-                        update(state, slots[ok], r[ok], Hp[ok], Hl[ok], V)
+                        correction = update(state, slots[ok], r[ok], Hp[ok], Hl[ok], V)
                     except np.linalg.LinAlgError as exc:
                         raise EstimationError(f"innovation covariance not positive definite at frame {t}: {exc}",
                                               frame=t) from None
@@ -367,7 +368,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                         stats.landmarks_initialized += int(g_ids.size)
                         stats.observations_used += int(g_ids.size)
                 if oc:
-                    last_correction = se3_log(state.imu_T_world @ se3_inverse(mu_prior))
+                    last_correction = correction
                 stats.max_state_landmarks = max(stats.max_state_landmarks, state.n_landmarks)
                 if not state.is_finite():
                     raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)

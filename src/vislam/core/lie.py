@@ -28,6 +28,8 @@ machine precision for every θ including exactly zero.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -190,6 +192,8 @@ def se3_exp(xi) -> np.ndarray:
     ``exp(xi) = [[R, J v], [0, 1]]`` with R from Rodrigues and J the SO(3) left Jacobian.
     """
     xi = _as_float(xi)
+    if xi.shape == (6,):
+        return _se3_exp_single(xi)
     phi = xi[..., 3:]
     theta = np.linalg.norm(phi, axis=-1)
     A, B, C = _angle_coefficients(theta)
@@ -199,6 +203,29 @@ def se3_exp(xi) -> np.ndarray:
     R = eye + A[..., None, None] * K + B[..., None, None] * KK
     J = eye + B[..., None, None] * K + C[..., None, None] * KK
     return make_pose(R, np.einsum("...ij,...j->...i", J, xi[..., :3]))
+
+
+def _se3_exp_single(xi: np.ndarray) -> np.ndarray:
+    """:func:`se3_exp` of one twist with scalar arithmetic (the filter calls it per frame;
+    the batched path costs ~10x more for a single element). Same formulas and branches."""
+    x, y, z = float(xi[3]), float(xi[4]), float(xi[5])
+    t2 = x * x + y * y + z * z
+    theta = math.sqrt(t2)
+    if theta < SMALL_ANGLE:
+        A = 1.0 - t2 / 6.0 + t2 * t2 / 120.0 - t2**3 / 5040.0
+        B = 0.5 - t2 / 24.0 + t2 * t2 / 720.0 - t2**3 / 40320.0
+        C = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0 - t2**3 / 362880.0
+    else:
+        A = math.sin(theta) / theta
+        sinc_half = math.sin(0.5 * theta) / (0.5 * theta)
+        B = 0.5 * sinc_half * sinc_half
+        C = (theta - math.sin(theta)) / (theta * t2)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    KK = K @ K
+    out = np.eye(4)
+    out[:3, :3] += A * K + B * KK
+    out[:3, 3] = (np.eye(3) + B * K + C * KK) @ xi[:3]
+    return out
 
 
 def se3_log(T) -> np.ndarray:

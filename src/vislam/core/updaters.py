@@ -33,6 +33,7 @@ __all__ = [
     "initialization_guard",
     "oc_project",
     "slam_predict_nis",
+    "compress_stereo",
     "slam_update",
     "slam_update_reference",
     "slam_initialize_landmarks",
@@ -172,49 +173,76 @@ def _apply_correction(state: SlamState, dx: np.ndarray) -> None:
         state.p_lm_in_world = state.p_lm_in_world + dx[POSE_DIM:].reshape(-1, 3)
 
 
-def _innovation_terms(P: np.ndarray, rows: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray):
-    """Σ Hᵀ (n x 4k) and the Cholesky factor L of S = H Σ Hᵀ + I ⊗ V, from the blocks."""
-    k = Hp.shape[0]
+def _innovation_terms(P: np.ndarray, rows: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, var: np.ndarray):
+    """Σ Hᵀ (n x mk) and the Cholesky factor L of S = H Σ Hᵀ + R, from the blocks.
+
+    ``Hp`` (k, m, 6), ``Hl`` (k, m, 3); ``var`` (m,) is the diagonal of each
+    observation's noise covariance (R = I ⊗ diag(var)).
+    """
+    k, m = Hp.shape[:2]
     n = P.shape[0]
     # Σ Hᵀ, column block i: Σ[:, :6] H_p,iᵀ + Σ[:, rows_i] H_l,iᵀ
-    PHt = np.einsum("nc,kjc->nkj", P[:, :POSE_DIM], Hp)
-    PHt += np.einsum("nkc,kjc->nkj", P[:, rows], Hl)
-    PHt = PHt.reshape(n, 4 * k)
-    # S = H (Σ Hᵀ) + I ⊗ V: the rows of Σ Hᵀ at the pose and at each observed landmark
-    S = np.einsum("kjc,cm->kjm", Hp, PHt[:POSE_DIM])
-    S += np.einsum("kjc,kcm->kjm", Hl, PHt[rows])
-    S = S.reshape(4 * k, 4 * k)
-    S = 0.5 * (S + S.T)
-    S[np.diag_indices(4 * k)] += np.tile(np.diag(V), k)  # V is diagonal: + I ⊗ V
-    return PHt, np.linalg.cholesky(S)  # S = L Lᵀ
+    PHt = P[:, :POSE_DIM] @ Hp.reshape(k * m, POSE_DIM).T  # (n, mk)
+    P_rows = np.ascontiguousarray(np.moveaxis(P[:, rows], 1, 0))  # (k, n, 3)
+    PHt += np.moveaxis(P_rows @ np.swapaxes(Hl, 1, 2), 0, 1).reshape(n, k * m)
+    # S = H (Σ Hᵀ) + R: the rows of Σ Hᵀ at the pose and at each observed landmark
+    S = Hp.reshape(k * m, POSE_DIM) @ PHt[:POSE_DIM]  # (mk, mk)
+    S += (Hl @ PHt[rows]).reshape(k * m, k * m)
+    S[np.diag_indices(k * m)] += np.tile(var, k)  # + I ⊗ R_i (diagonal)
+    return PHt, np.linalg.cholesky(S)  # S = L Lᵀ (reads the lower triangle)
+
+
+def compress_stereo(r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray):
+    """Exact 3-row form of k stereo observations for the update.
+
+    The rows of vL and vR in the model are identical (M's rows 2 and 4 are equal), so
+    with independent noise of equal variance σ_v² the pair carries exactly the
+    information of its mean, (vL + vR)/2 with variance σ_v²/2: the same Gaussian
+    likelihood up to a constant, hence the same EKF update, with 3k instead of 4k rows.
+    Returns (r3, Hp3, Hl3, var3).
+    """
+    var = np.diag(V)
+    if V[1, 1] != V[3, 3] or np.count_nonzero(V - np.diag(var)):
+        return r, Hp, Hl, var  # not applicable: keep the four rows
+    idx = [0, 1, 2]
+    r3 = r[:, idx].copy()
+    r3[:, 1] = 0.5 * (r[:, 1] + r[:, 3])
+    Hp3 = Hp[:, idx].copy()
+    Hp3[:, 1] = 0.5 * (Hp[:, 1] + Hp[:, 3])
+    Hl3 = Hl[:, idx].copy()
+    Hl3[:, 1] = 0.5 * (Hl[:, 1] + Hl[:, 3])
+    return r3, Hp3, Hl3, np.array([var[0], 0.5 * var[1], var[2]])
 
 
 def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
-                V: np.ndarray) -> None:
+                V: np.ndarray) -> np.ndarray:
     """Joint EKF update of pose and landmarks with k accepted observations (in place).
 
-    Block-sparse form of the report's update::
+    Block-sparse form of the report's update (after :func:`compress_stereo`)::
 
-        Σ Hᵀ = Σ[:, pose] H_pᵀ + Σ[:, s_i] H_lᵀ          (n x 4k), from the blocks
-        S    = H Σ Hᵀ + I ⊗ V                              (4k x 4k)
+        Σ Hᵀ = Σ[:, pose] H_pᵀ + Σ[:, s_i] H_lᵀ          (n x 3k), from the blocks
+        S    = H Σ Hᵀ + I ⊗ V                              (3k x 3k)
         S    = L Lᵀ                                        (Cholesky)
-        A    = Σ Hᵀ L⁻ᵀ                                    (so K S Kᵀ = A Aᵀ)
-        δ    = K r = A (L⁻¹ r)
-        Σ   ← Σ − A Aᵀ = Σ − K S Kᵀ                        (symmetric rank-4k form)
+        B    = L⁻¹ (Σ Hᵀ)ᵀ                                 (so K S Kᵀ = Bᵀ B)
+        δ    = K r = Bᵀ (L⁻¹ r)
+        Σ   ← Σ − Bᵀ B = Σ − K S Kᵀ                        (symmetric rank-3k form)
 
-    Raises numpy.linalg.LinAlgError when S is not positive definite.
+    Returns the pose correction δ_p (μ ← exp(δ_p^) μ). Raises numpy.linalg.LinAlgError
+    when S is not positive definite.
     """
     k = len(slots)
     if k == 0:
-        return
+        return np.zeros(POSE_DIM)
+    r, Hp, Hl, var = compress_stereo(r, Hp, Hl, V)
     P = state.cov
     rows = state.landmark_rows(slots)  # (k, 3)
-    PHt, L = _innovation_terms(P, rows, Hp, Hl, V)
-    A = solve_triangular(L, PHt.T, lower=True, check_finite=False).T  # A = Σ Hᵀ L⁻ᵀ
+    PHt, L = _innovation_terms(P, rows, Hp, Hl, var)
+    B = solve_triangular(L, PHt.T, lower=True, check_finite=False)  # B = L⁻¹ H Σ
     y = solve_triangular(L, r.reshape(-1), lower=True, check_finite=False)  # y = L⁻¹ r
-    dx = A @ y  # δ = K r = Σ Hᵀ S⁻¹ r
-    P -= A @ A.T  # Σ ← Σ − K S Kᵀ
+    dx = B.T @ y  # δ = K r = Σ Hᵀ S⁻¹ r
+    P -= B.T @ B  # Σ ← Σ − K S Kᵀ
     _apply_correction(state, dx)
+    return dx[:POSE_DIM]
 
 
 def slam_update_reference(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
@@ -223,7 +251,7 @@ def slam_update_reference(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp
     4k x n Jacobian and applies the Joseph form ``(I − K H) Σ (I − K H)ᵀ + K (I ⊗ V) Kᵀ``."""
     k = len(slots)
     if k == 0:
-        return
+        return np.zeros(POSE_DIM)
     n = state.dim
     H = np.zeros((4 * k, n))
     rows = state.landmark_rows(slots)
@@ -238,6 +266,7 @@ def slam_update_reference(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp
     IKH = np.eye(n) - K @ H
     state.cov[...] = IKH @ P @ IKH.T + K @ R @ K.T  # Joseph form
     _apply_correction(state, dx)
+    return dx[:POSE_DIM]
 
 
 def _init_geometry(model: StereoModel, imu_T_world: np.ndarray, pixels: np.ndarray):
