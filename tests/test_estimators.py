@@ -204,7 +204,7 @@ def test_update_keeps_covariance_symmetric_psd_and_reduces_uncertainty():
     slots = state.slot_of[ids]
     z, slots = z[slots >= 0], slots[slots >= 0]
     before = state.cov.copy()
-    r, Hp, Hl, in_front, nis = slam_predict_nis(state, model, slots, z, opts.V)
+    r, Hp, Hl, in_front, nis, _ = slam_predict_nis(state, model, slots, z, opts.V)
     slam_update(state, slots, r, Hp, Hl, opts.V)
     after = state.cov
     assert np.abs(after - after.T).max() < 1e-12
@@ -221,7 +221,7 @@ def test_update_matches_reference_in_one_step():
     ids, z = seq.observations.frame(1)
     slots = state.slot_of[ids]
     z, slots = z[slots >= 0], slots[slots >= 0]
-    r, Hp, Hl, _, _ = slam_predict_nis(state, model, slots, z, opts.V)
+    r, Hp, Hl, _, _, _ = slam_predict_nis(state, model, slots, z, opts.V)
     a, b = copy.deepcopy(state), copy.deepcopy(state)
     slam_update(a, slots, r, Hp, Hl, opts.V)
     slam_update_reference(b, slots, r, Hp, Hl, opts.V)

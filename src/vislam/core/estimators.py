@@ -53,7 +53,9 @@ from vislam.core.updaters import (
     slam_initialize_landmarks,
     slam_predict_nis,
     slam_update,
+    schmidt_update,
     slam_update_reference,
+    static_consistency_nis,
 )
 from vislam.errors import ConfigError, EstimationError, GeometryError
 
@@ -121,13 +123,14 @@ def _repeated_observations(sequence: Sequence, options: FilterOptions, stats: Ru
 class _MapBuilder:
     """Collects frozen landmark entries (marginalized, rejected or final)."""
 
-    _KEYS = ("ids", "track", "p", "cov", "nobs", "ngated", "first", "last", "status")
+    _KEYS = ("ids", "track", "p", "cov", "nobs", "ngated", "first", "last", "status", "v")
 
     def __init__(self):
         self._cols: dict[str, list] = {k: [] for k in self._KEYS}
 
-    def add(self, ids, track, p, cov, nobs, ngated, first, last, status) -> None:
+    def add(self, ids, track, p, cov, nobs, ngated, first, last, status, v=None) -> None:
         c = self._cols
+        c["v"].append(np.zeros((np.size(ids), 3)) if v is None else np.asarray(v, dtype=np.float64).reshape(-1, 3))
         c["ids"].append(np.asarray(ids, dtype=np.int64))
         c["track"].append(np.asarray(track, dtype=np.int64))
         c["p"].append(np.asarray(p, dtype=np.float64).reshape(-1, 3))
@@ -147,7 +150,7 @@ class _MapBuilder:
         return LandmarkMap(ids=cat["ids"][order], track=cat["track"][order], p_lm_in_world=cat["p"][order],
                            covariance=cat["cov"][order], n_observations=cat["nobs"][order],
                            n_gated=cat["ngated"][order], first_frame=cat["first"][order],
-                           last_frame=cat["last"][order], status=cat["status"][order])
+                           last_frame=cat["last"][order], status=cat["status"][order], v_lm_in_world=cat["v"][order])
 
 
 class _Tracks:
@@ -188,6 +191,68 @@ class _Tracks:
 
     def entry(self, ids: np.ndarray) -> tuple:
         return self.track_count[ids] - 1, self.nobs[ids], self.ngated[ids], self.first[ids], self.last[ids]
+
+
+class _PendingLandmarks:
+    """Delayed SLAM initialization (``options.init_frames``): a landmark waits until it
+    has been seen in that many consecutive frames, then its first and latest
+    observations must agree with a static point (:func:`static_consistency_nis`)."""
+
+    def __init__(self, M: int, options: FilterOptions, model: StereoModel, tau: np.ndarray, tracks: _Tracks,
+                 builder: _MapBuilder):
+        self.n = options.init_frames
+        self.options = options
+        self.model = model
+        self.tau = tau
+        self.tracks = tracks
+        self.builder = builder
+        self.start = np.full(M, -1, dtype=np.int64)  # first frame of the waiting window
+        self.last = np.full(M, -2, dtype=np.int64)  # last frame seen while waiting
+        self.pixels = np.zeros((M, 4))
+        self.failures = np.zeros(M, dtype=np.int64)
+
+    def admit(self, ids: np.ndarray, z: np.ndarray, t: int, imu_T_world: np.ndarray, means: np.ndarray,
+              stats: RunStats):
+        """Return the (ids, pixels) to initialize now among candidates observed at t."""
+        if self.n <= 1:
+            return ids, z
+        restart = self.last[ids] != t - 1
+        self.start[ids[restart]] = t
+        self.pixels[ids[restart]] = z[restart]
+        self.last[ids] = t
+        ready = ~restart & (t - self.start[ids] + 1 >= self.n)
+        if not np.any(ready):
+            return ids[:0], z[:0]
+        r_ids, r_z = ids[ready], z[ready]
+        t0 = self.start[r_ids]
+        steps = np.cumsum(np.concatenate([[0.0], self.tau**2]))
+        opts = self.options
+        nis = np.empty(r_ids.size)
+        for f0 in np.unique(t0):  # usually one start frame per batch
+            sel = t0 == f0
+            Q = (steps[t] - steps[f0]) * opts.W  # Σ τ² W between the two frames
+            nis[sel] = static_consistency_nis(self.model, imu_T_world, r_z[sel], means[f0], self.pixels[r_ids[sel]],
+                                              opts.V, Q)
+        ok = nis <= opts.gate_threshold
+        bad_ids = r_ids[~ok]
+        if bad_ids.size:
+            self.failures[bad_ids] += 1
+            stats.observations_gated += int(bad_ids.size)
+            # try again from the latest observation; a second failure rejects the landmark
+            self.start[bad_ids] = t
+            self.pixels[bad_ids] = r_z[~ok]
+            out = bad_ids[self.failures[bad_ids] >= 2]
+            if out.size:
+                self.tracks.rejected[out] = True
+                self.tracks.started(out, t)
+                stats.landmarks_rejected += int(out.size)
+                sel = np.isin(r_ids, out)
+                p_w, cov = mapping_initialize(self.model, imu_T_world, r_z[sel], opts.V)
+                self.builder.add(out, *self.tracks.entry(out)[:1], p_w, cov, *self.tracks.entry(out)[1:],
+                                 LANDMARK_REJECTED)
+        self.start[r_ids[ok]] = -1
+        self.last[r_ids[ok]] = -2
+        return r_ids[ok], r_z[ok]
 
 
 # ----------------------------------------------------------------------------- mapping
@@ -291,7 +356,10 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
     tau, u = motion_increments(sequence)
     update = slam_update_reference if reference else slam_update
 
-    state = SlamState(np.eye(4), options.initial_pose_covariance, n_ids=M)
+    motion = options.landmark_motion
+    state = SlamState(np.eye(4), options.initial_pose_covariance, n_ids=M, lm_dim=6 if motion else 3)
+    velocity_var = options.landmark_velocity_std_mps**2
+    accel_var = options.landmark_acceleration_std_mps2**2
     tracks = _Tracks(M)
     builder = _MapBuilder()
     means = np.zeros((T, 4, 4))
@@ -303,6 +371,10 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
     split = options.repeated_observations == "split"
     seen = np.zeros(M, dtype=bool)
     last_correction = np.zeros(6)  # pose correction of the previous update (OC transition)
+    pending = _PendingLandmarks(M, options, model, tau, tracks, builder)
+    drift_gate = options.drift_threshold
+    drift_sum = np.zeros((M, 4))  # per landmark: Σ of whitened innovations and their count
+    drift_n = np.zeros(M)
     error = None
     done = 0
 
@@ -312,7 +384,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
         ids = state.landmark_ids[slots]
         track, nobs, ngated, first, last = tracks.entry(ids)
         builder.add(ids, track, state.p_lm_in_world[slots], state.landmark_cov(slots), nobs, ngated, first, last,
-                    status)
+                    status, state.v_lm_in_world[slots])
         state.remove_slots(slots)
 
     for t in range(T):
@@ -324,6 +396,8 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                 correction = np.zeros(6)
                 if t > 0:
                     predict_state(state, tau[t - 1], u[t - 1], W, last_correction if oc else None)
+                    if motion:
+                        state.predict_landmarks(tau[t - 1], accel_var)
                 mu_prior = state.imu_T_world
                 # unobservable directions of the pose at the prior (OC variant)
                 N_pose = -se3_adjoint(mu_prior) if oc else None
@@ -340,13 +414,29 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                 # ---- 2. update with the landmarks in the state
                 if np.any(live):
                     slots, lids = slot_arr[live], ids[live]
-                    r, Hp, Hl, in_front, nis = slam_predict_nis(state, model, slots, z[live], V, N_pose)
+                    r, Hp, Hl, in_front, nis, white = slam_predict_nis(state, model, slots, z[live], V, N_pose,
+                                                                      return_whitened=drift_gate < np.inf)
                     ok = in_front & (nis <= gate)
-                    try:
-                        correction = update(state, slots[ok], r[ok], Hp[ok], Hl[ok], V)
-                    except np.linalg.LinAlgError as exc:
-                        raise EstimationError(f"innovation covariance not positive definite at frame {t}: {exc}",
-                                              frame=t) from None
+                    if drift_gate < np.inf:
+                        # innovation drift test: for a static landmark the whitened
+                        # innovations w = L⁻¹ r are white, so Σ w / √k ~ N(0, I₄); a point on
+                        # a moving vehicle gives innovations of a consistent sign
+                        drift_sum[lids] += np.where(ok[:, None], white, 0.0)
+                        drift_n[lids] += ok
+                        stat = np.einsum("ki,ki->k", drift_sum[lids], drift_sum[lids]) / np.maximum(drift_n[lids], 1)
+                        moving = ok & (drift_n[lids] >= 2) & (stat > drift_gate)
+                        ok &= ~moving
+                        stats.landmarks_moving += int(moving.sum())
+                        # rejected at once (below): it moves
+                        tracks.consecutive[lids[moving]] = max(options.max_consecutive_gated, 1) - 1
+                    young = tracks.nobs[lids] <= options.probation_frames  # init counts as 1
+                    joint = ok & ~young
+                    correction = update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
+                    probe = ok & young
+                    if np.any(probe):
+                        # slots are unchanged by the joint update; re-linearize at the new pose
+                        r2, Hp2, Hl2, _, _, _ = slam_predict_nis(state, model, slots[probe], z[live][probe], V, N_pose)
+                        schmidt_update(state, slots[probe], r2, Hp2, Hl2, V)
                     # ---- 3. reject landmarks that keep failing the gate
                     bad = tracks.updated(lids, ok, t, stats, options.max_consecutive_gated)
                     freeze(state.slot_of[bad], LANDMARK_REJECTED)
@@ -362,11 +452,14 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                     good = initialization_guard(sequence.camera, n_z, options)
                     stats.observations_not_initialized += int((~good).sum())
                     if np.any(good):
-                        g_ids = n_ids[good]
-                        slam_initialize_landmarks(state, model, g_ids, n_z[good], V, N_pose)
-                        tracks.started(g_ids, t)
-                        stats.landmarks_initialized += int(g_ids.size)
-                        stats.observations_used += int(g_ids.size)
+                        g_ids, g_z = pending.admit(n_ids[good], n_z[good], t, state.imu_T_world, means, stats)
+                        if g_ids.size:
+                            slam_initialize_landmarks(state, model, g_ids, g_z, V, N_pose, velocity_var)
+                            tracks.started(g_ids, t)
+                            drift_sum[g_ids] = 0.0
+                            drift_n[g_ids] = 0
+                            stats.landmarks_initialized += int(g_ids.size)
+                            stats.observations_used += int(g_ids.size)
                 if oc:
                     last_correction = correction
                 stats.max_state_landmarks = max(stats.max_state_landmarks, state.n_landmarks)
@@ -374,8 +467,8 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                     raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
                 if np.any(np.diagonal(state.cov) < -1e-9):
                     raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
-        except (EstimationError, GeometryError) as exc:
-            error = str(exc) if isinstance(exc, EstimationError) else f"frame {t}: {exc}"
+        except (EstimationError, GeometryError, np.linalg.LinAlgError) as exc:
+            error = str(exc) if isinstance(exc, EstimationError) else f"numerical failure at frame {t}: {exc}"
             logger.error("%s; stopping with a partial result", error)
             break
         means[t] = state.imu_T_world

@@ -28,7 +28,7 @@ import numpy as np
 
 from vislam.errors import ConfigError
 
-__all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "EKF_VARIANTS"]
+__all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET"]
 
 #: The three estimators of the report.
 MODES = ("localization", "mapping", "slam")
@@ -36,6 +36,18 @@ MODES = ("localization", "mapping", "slam")
 REPEATED_POLICIES = ("skip", "split", "use")
 #: EKF variants.
 EKF_VARIANTS = ("oc", "standard")
+
+
+def _chi2_4_quantile(p: float | None) -> float:
+    if p is None:
+        return math.inf
+    from scipy.special import chdtri  # inverse survival function of chi-square
+
+    return float(chdtri(4, 1.0 - p))
+
+
+#: Options of the robust preset (``--robust``): for scenes with moving traffic.
+ROBUST_PRESET = {"drift_test_probability": 0.9, "probation_frames": 2}
 
 
 @dataclass(frozen=True)
@@ -68,6 +80,19 @@ class FilterOptions:
     min_depth_m: float = 0.5
     #: Largest |vL − vR| (px) accepted (rectified images should agree on the row).
     max_row_difference_px: float = 3.0
+    #: A SLAM landmark enters the state once it has passed the guards in this many
+    #: consecutive frames and its first and latest observations agree with a static
+    #: point (chi-square gate, accounting for triangulation, pixel and IMU noise); the
+    #: latest observation initializes it. 1 initializes at first sight (the report).
+    #: Points on moving vehicles and mismatched tracks fail the check: after two failures
+    #: the landmark is rejected.
+    init_frames: int = 1
+    #: A new SLAM landmark's first updates refine only the landmark itself, treating the
+    #: pose as known with its uncertainty (Schmidt-Kalman "consider" update), for this
+    #: many frames; after that it updates pose and landmarks jointly. Points on moving
+    #: vehicles drift away from their static prediction during this probation and are
+    #: gated out before they can pull the pose. 0 disables probation (the report).
+    probation_frames: int = 0
 
     #: What to do with an observation whose four pixels repeat the same landmark's
     #: previous observation bit for bit (a tracker artifact of the KITTI feature files,
@@ -84,6 +109,22 @@ class FilterOptions:
     #: A landmark whose observations fail the gate this many frames in a row is removed
     #: from the state and kept in the map flagged as rejected (0 disables rejection).
     max_consecutive_gated: int = 3
+    #: Innovation drift test (probability, or None to disable): a static landmark's
+    #: whitened innovations are white, so their running sum over k updates divided by √k
+    #: is N(0, I₄); when its squared norm exceeds the chi-square(4) quantile the landmark
+    #: is taken for a point on a moving object and rejected. Catches vehicles whose motion
+    #: hides, frame by frame, inside the landmark's own uncertainty. Off by default: on
+    #: the KITTI files it also rejects good tracks (see the README's robustness section).
+    drift_test_probability: float | None = None
+
+    # --- landmark motion model (the report's proposed fix for moving landmarks) --------
+    #: Give every SLAM landmark a velocity with a constant-velocity prediction step, so
+    #: a moving point can be tracked instead of corrupting the pose. Off by default.
+    landmark_motion: bool = False
+    #: Prior 1σ of a new landmark's velocity per axis (m/s), motion model only.
+    landmark_velocity_std_mps: float = 2.0
+    #: Process noise: 1σ of a landmark's acceleration per axis (m/s²), motion model only.
+    landmark_acceleration_std_mps2: float = 1.0
 
     # --- filter variant ----------------------------------------------------------------
     #: "oc" (default): the observability-constrained EKF — measurement Jacobians are
@@ -100,9 +141,10 @@ class FilterOptions:
     def __post_init__(self):
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name == "gating_probability":
-                if value is not None and not (isinstance(value, (int, float)) and 0.0 < value < 1.0):
-                    raise ConfigError(f"gating_probability must be in (0, 1) or null, got {value!r}")
+            if f.name in ("gating_probability", "drift_test_probability"):
+                if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                          or not 0.0 < value < 1.0):
+                    raise ConfigError(f"{f.name} must be in (0, 1) or null, got {value!r}")
             elif f.name == "repeated_observations":
                 if value not in REPEATED_POLICIES:
                     raise ConfigError(f"repeated_observations must be one of {', '.join(REPEATED_POLICIES)}, got {value!r}")
@@ -112,9 +154,10 @@ class FilterOptions:
             elif isinstance(f.default, bool):
                 if not isinstance(value, bool):
                     raise ConfigError(f"{f.name} must be true or false, got {value!r}")
-            elif f.name == "max_consecutive_gated":
-                if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                    raise ConfigError(f"max_consecutive_gated must be an integer >= 0, got {value!r}")
+            elif f.name in ("max_consecutive_gated", "init_frames", "probation_frames"):
+                low = 1 if f.name == "init_frames" else 0
+                if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                    raise ConfigError(f"{f.name} must be an integer >= {low}, got {value!r}")
             else:
                 if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                     raise ConfigError(f"{f.name} must be a finite number, got {value!r}")
@@ -143,11 +186,12 @@ class FilterOptions:
     @property
     def gate_threshold(self) -> float:
         """Chi-square(4) quantile for :attr:`gating_probability` (inf when gating is off)."""
-        if self.gating_probability is None:
-            return math.inf
-        from scipy.special import chdtri  # inverse survival function of chi-square
+        return _chi2_4_quantile(self.gating_probability)
 
-        return float(chdtri(4, 1.0 - self.gating_probability))
+    @property
+    def drift_threshold(self) -> float:
+        """Chi-square(4) quantile for :attr:`drift_test_probability` (inf when off)."""
+        return _chi2_4_quantile(self.drift_test_probability)
 
     # --- (de)serialization ------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

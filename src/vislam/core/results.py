@@ -31,6 +31,7 @@ class LandmarkMap:
         n_gated: (K,) observations refused by the chi-square gate.
         first_frame, last_frame: (K,) frames of the first and last observation.
         status: (K,) :data:`LANDMARK_OK` or :data:`LANDMARK_REJECTED`.
+        v_lm_in_world: (K, 3) velocity (m/s) with the landmark motion model, else zeros.
     """
 
     ids: np.ndarray
@@ -42,6 +43,11 @@ class LandmarkMap:
     first_frame: np.ndarray
     last_frame: np.ndarray
     status: np.ndarray
+    v_lm_in_world: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.v_lm_in_world is None:
+            self.v_lm_in_world = np.zeros((len(self.ids), 3))
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -70,6 +76,7 @@ class RunStats:
     observations_not_initialized: int = 0
     landmarks_initialized: int = 0
     landmarks_rejected: int = 0
+    landmarks_moving: int = 0
     max_state_landmarks: int = 0
     #: Per-frame filter time (s), estimation only.
     frame_seconds: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -90,6 +97,7 @@ class RunStats:
             "observations_not_initialized": self.observations_not_initialized,
             "landmarks_initialized": self.landmarks_initialized,
             "landmarks_rejected": self.landmarks_rejected,
+            "landmarks_moving": self.landmarks_moving,
             "max_state_landmarks": self.max_state_landmarks,
             "filter_seconds": self.filter_seconds,
             "frame_ms_median": float(np.median(fs) * 1e3) if fs.size else None,

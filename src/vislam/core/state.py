@@ -5,10 +5,12 @@ Variables (the report's):
 * the **inverse IMU pose** ``imu_T_world`` (4x4 mean ``μ``), perturbed on the **left**:
   ``imu_T_world = exp(δ^) μ``, δ = (ρ, φ) in the (v, ω) order of :mod:`vislam.core.lie`;
 * the positions ``p_lm_in_world`` (3 each, additive perturbation) of the landmarks
-  currently in the state.
+  currently in the state — and, with the landmark motion model (the report's proposed
+  fix for moving landmarks), their velocities ``v_lm_in_world`` (3 more each).
 
-Covariance layout: one symmetric matrix Σ of size ``n = 6 + 3 L`` for ``L`` landmarks,
-the pose block first (rows 0:6), then landmark *slot* ``s`` at rows ``6 + 3s : 9 + 3s``.
+Covariance layout: one symmetric matrix Σ of size ``n = 6 + d L`` for ``L`` landmarks of
+``d = lm_dim`` (3, or 6 with velocities) dimensions, the pose block first (rows 0:6),
+then landmark *slot* ``s`` at rows ``6 + d s : 6 + d (s + 1)`` (position first).
 Σ lives in a preallocated buffer with slack (it grows by doubling and is compacted in
 place when landmarks leave), so steady-state frames allocate no new covariance.
 """
@@ -27,9 +29,12 @@ class SlamState:
     """Means, covariance and the index of each landmark block."""
 
     def __init__(self, imu_T_world: np.ndarray, pose_covariance: np.ndarray, n_ids: int,
-                 capacity_landmarks: int = 64):
+                 capacity_landmarks: int = 64, lm_dim: int = LM_DIM):
+        if lm_dim not in (3, 6):
+            raise ValueError("lm_dim must be 3 (position) or 6 (position and velocity)")
+        self.lm_dim = lm_dim
         self.imu_T_world = np.array(imu_T_world, dtype=np.float64)
-        cap = POSE_DIM + LM_DIM * max(int(capacity_landmarks), 1)
+        cap = POSE_DIM + lm_dim * max(int(capacity_landmarks), 1)
         self._buffer = np.zeros((cap, cap))
         self._buffer[:POSE_DIM, :POSE_DIM] = pose_covariance
         self.n_landmarks = 0
@@ -37,16 +42,18 @@ class SlamState:
         self.landmark_ids = np.zeros(0, dtype=np.int64)
         #: (L, 3) mean position of the landmark in each slot.
         self.p_lm_in_world = np.zeros((0, 3))
-        #: (L, 3, 6) block of each landmark in the unobservable directions (the global
+        #: (L, 3) mean velocity (zero and unused without the motion model).
+        self.v_lm_in_world = np.zeros((0, 3))
+        #: (L, d, 6) block of each landmark in the unobservable directions (the global
         #: gauge) of the linearized system, used by the observability-constrained update.
-        self.lm_null = np.zeros((0, 3, 6))
+        self.lm_null = np.zeros((0, lm_dim, 6))
         #: (n_ids,) slot of each dataset id, -1 when not in the state.
         self.slot_of = np.full(int(n_ids), -1, dtype=np.int64)
 
     # --- sizes and views -------------------------------------------------------------
     @property
     def dim(self) -> int:
-        return POSE_DIM + LM_DIM * self.n_landmarks
+        return POSE_DIM + self.lm_dim * self.n_landmarks
 
     @property
     def cov(self) -> np.ndarray:
@@ -63,8 +70,8 @@ class SlamState:
         return self._buffer.shape[0]
 
     def landmark_rows(self, slots: np.ndarray) -> np.ndarray:
-        """(k, 3) covariance row indices of the given slots."""
-        return POSE_DIM + LM_DIM * np.asarray(slots, dtype=np.int64)[:, None] + np.arange(LM_DIM)
+        """(k, d) covariance row indices of the given slots (position rows first)."""
+        return POSE_DIM + self.lm_dim * np.asarray(slots, dtype=np.int64)[:, None] + np.arange(self.lm_dim)
 
     # --- structural changes ----------------------------------------------------------
     def _ensure_capacity(self, dim: int) -> None:
@@ -83,14 +90,14 @@ class SlamState:
         Args:
             ids: (k,) dataset ids (not already in the state).
             p_lm_in_world: (k, 3) means.
-            cross_cov: (3k, n) covariance between the new landmarks and the current state.
-            new_cov: (3k, 3k) covariance among the new landmarks.
+            cross_cov: (dk, n) covariance between the new landmarks and the current state.
+            new_cov: (dk, dk) covariance among the new landmarks.
         """
         k = len(ids)
         if k == 0:
             return np.zeros(0, dtype=np.int64)
         n = self.dim
-        m = n + LM_DIM * k
+        m = n + self.lm_dim * k
         self._ensure_capacity(m)
         buf = self._buffer
         buf[n:m, :n] = cross_cov
@@ -99,9 +106,11 @@ class SlamState:
         slots = np.arange(self.n_landmarks, self.n_landmarks + k)
         self.landmark_ids = np.concatenate([self.landmark_ids, np.asarray(ids, dtype=np.int64)])
         self.p_lm_in_world = np.concatenate([self.p_lm_in_world, np.asarray(p_lm_in_world, dtype=np.float64)])
+        self.v_lm_in_world = np.concatenate([self.v_lm_in_world, np.zeros((k, 3))])
         if null_blocks is None:
-            null_blocks = np.zeros((k, 3, 6))
-        self.lm_null = np.concatenate([self.lm_null, np.asarray(null_blocks, dtype=np.float64).reshape(k, 3, 6)])
+            null_blocks = np.zeros((k, self.lm_dim, 6))
+        self.lm_null = np.concatenate([self.lm_null,
+                                       np.asarray(null_blocks, dtype=np.float64).reshape(k, self.lm_dim, 6)])
         self.slot_of[np.asarray(ids, dtype=np.int64)] = slots
         self.n_landmarks += k
         return slots
@@ -125,19 +134,45 @@ class SlamState:
         self.slot_of[self.landmark_ids[~keep_slot]] = -1
         self.landmark_ids = self.landmark_ids[keep_slot]
         self.p_lm_in_world = self.p_lm_in_world[keep_slot]
+        self.v_lm_in_world = self.v_lm_in_world[keep_slot]
         self.lm_null = self.lm_null[keep_slot]
         self.n_landmarks = int(keep_slot.sum())
         self.slot_of[self.landmark_ids] = np.arange(self.n_landmarks)
 
     def landmark_cov(self, slots: np.ndarray) -> np.ndarray:
-        """(k, 3, 3) marginal covariances of the landmarks in ``slots``."""
-        rows = self.landmark_rows(slots)
+        """(k, 3, 3) marginal covariances of the positions of the landmarks in ``slots``."""
+        rows = self.landmark_rows(slots)[:, :3]
         return self.cov[rows[:, :, None], rows[:, None, :]]
+
+    def landmark_velocity_cov(self, slots: np.ndarray) -> np.ndarray:
+        """(k, 3, 3) marginal covariances of the velocities (motion model only)."""
+        rows = self.landmark_rows(slots)[:, 3:6]
+        return self.cov[rows[:, :, None], rows[:, None, :]]
+
+    def predict_landmarks(self, tau: float, accel_var: float) -> None:
+        """Constant-velocity prediction of every landmark (motion model, lm_dim 6)::
+
+            m ← m + τ v,   v ← v + a,   a ~ N(0, σ_a² τ² I)
+            Σ ← F Σ Fᵀ + Q,   F = I except F[m_j, v_j] = τ I,   Q[v_j, v_j] = σ_a² τ² I
+        """
+        if self.lm_dim != 6 or self.n_landmarks == 0:
+            return
+        self.p_lm_in_world = self.p_lm_in_world + tau * self.v_lm_in_world
+        n = self.dim
+        P = self.cov
+        L = self.n_landmarks
+        pos = (POSE_DIM + 6 * np.arange(L)[:, None] + np.arange(3)).ravel()
+        vel = pos + 3
+        P[:, pos] += tau * P[:, vel]  # Σ Fᵀ: column m_j += τ column v_j
+        P[pos, :] += tau * P[vel, :]  # F (Σ Fᵀ): row m_j += τ row v_j
+        P[vel, vel] += accel_var * tau * tau  # + Q
+        del n
 
     def is_finite(self) -> bool:
         n = self.dim
         return bool(
             np.all(np.isfinite(self.imu_T_world))
             and np.all(np.isfinite(self.p_lm_in_world))
+            and np.all(np.isfinite(self.v_lm_in_world))
             and np.all(np.isfinite(self._buffer[:n, :n]))
         )

@@ -39,6 +39,7 @@ __all__ = [
     "slam_initialize_landmarks",
     "mapping_update",
     "mapping_initialize",
+    "static_consistency_nis",
 ]
 
 
@@ -116,7 +117,7 @@ def _gather_blocks(state: SlamState, slots: np.ndarray):
 
 
 def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
-                     N_pose: np.ndarray | None = None):
+                     N_pose: np.ndarray | None = None, return_whitened: bool = False):
     """Linearize every observation and compute its own innovation covariance and NIS.
 
     Per observation i (landmark slot s)::
@@ -124,10 +125,13 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
         S_i = H_p Σ_pp H_pᵀ + H_p Σ_ps H_lᵀ + H_l Σ_sp H_pᵀ + H_l Σ_ss H_lᵀ + V
         NIS_i = r_iᵀ S_i⁻¹ r_i,   r_i = z_i − ẑ_i
 
-    Returns (r, H_pose, H_lm, in_front, nis); NIS is +inf where the landmark is behind
-    the camera.
+    Returns (r, H_pose, H_lm, in_front, nis, w); NIS is +inf where the landmark is
+    behind the camera; w = L⁻¹ r (S = L Lᵀ), the whitened innovations, when
+    ``return_whitened`` (else None).
     """
     z_hat, Hp, Hl, in_front = model.predict(state.imu_T_world, state.p_lm_in_world[slots])
+    if state.lm_dim == 6:  # the observation does not depend on the velocity
+        Hl = np.concatenate([Hl, np.zeros_like(Hl)], axis=2)
     if N_pose is not None:
         Hp, Hl = oc_project(Hp, Hl, N_pose, state.lm_null[slots])
     r = z - z_hat
@@ -138,7 +142,13 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
     nis = np.full(len(slots), np.inf)
     if np.any(in_front):
         nis[in_front] = innovation_nis(r[in_front], S[in_front])
-    return r, Hp, Hl, in_front, nis
+    w = None
+    if return_whitened:
+        w = np.zeros_like(r)
+        if np.any(in_front):
+            Lc = np.linalg.cholesky(S[in_front])
+            w[in_front] = np.linalg.solve(Lc, r[in_front][:, :, None])[:, :, 0]  # L⁻¹ r ~ N(0, I)
+    return r, Hp, Hl, in_front, nis, w
 
 
 def oc_project(Hp: np.ndarray, Hl: np.ndarray, N_pose: np.ndarray, N_lm: np.ndarray):
@@ -155,10 +165,11 @@ def oc_project(Hp: np.ndarray, Hl: np.ndarray, N_pose: np.ndarray, N_lm: np.ndar
         H* = H − H N (Nᵀ N)⁻¹ Nᵀ
     """
     k = Hp.shape[0]
-    N = np.empty((k, 9, 6))
+    d = Hl.shape[2]
+    N = np.empty((k, 6 + d, 6))
     N[:, :6, :] = N_pose
     N[:, 6:, :] = N_lm
-    H = np.concatenate([Hp, Hl], axis=2)  # (k, 4, 9)
+    H = np.concatenate([Hp, Hl], axis=2)  # (k, 4, 6 + d)
     HN = H @ N  # (k, 4, 6)
     NtN = np.swapaxes(N, 1, 2) @ N  # (k, 6, 6)
     X = np.linalg.solve(NtN, np.swapaxes(N, 1, 2))  # (Nᵀ N)⁻¹ Nᵀ  (k, 6, 9)
@@ -170,7 +181,10 @@ def _apply_correction(state: SlamState, dx: np.ndarray) -> None:
     """μ_pose ← exp(δ_p^) μ_pose;  m ← m + δ_m  (the report's split of K (z − ẑ))."""
     state.imu_T_world = se3_exp(dx[:POSE_DIM]) @ state.imu_T_world
     if state.n_landmarks:
-        state.p_lm_in_world = state.p_lm_in_world + dx[POSE_DIM:].reshape(-1, 3)
+        d_lm = dx[POSE_DIM:].reshape(state.n_landmarks, state.lm_dim)
+        state.p_lm_in_world = state.p_lm_in_world + d_lm[:, :3]
+        if state.lm_dim == 6:
+            state.v_lm_in_world = state.v_lm_in_world + d_lm[:, 3:]
 
 
 def _innovation_terms(P: np.ndarray, rows: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, var: np.ndarray):
@@ -245,6 +259,43 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
     return dx[:POSE_DIM]
 
 
+def schmidt_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
+                   V: np.ndarray) -> None:
+    """Update only the landmarks in ``slots``; the pose and every other landmark are
+    *considered* (Schmidt-Kalman filter): their means and covariances are unchanged.
+
+    With A the rows of the updated landmarks and K_A = (Σ Hᵀ)_A S⁻¹ (the other rows of
+    the gain set to zero), the Joseph form reduces to::
+
+        x_A ← x_A + K_A r
+        Σ_A,: ← Σ_A,: − K_A (H Σ)          (and Σ_:,A = Σ_A,:ᵀ)
+
+    This is the exact covariance of that (suboptimal, conservative) update, so Σ stays
+    consistent. Used for young landmarks, which should not move the pose before their
+    own position is well determined.
+    """
+    k = len(slots)
+    if k == 0:
+        return
+    r, Hp, Hl, var = compress_stereo(r, Hp, Hl, V)
+    P = state.cov
+    rows = state.landmark_rows(slots)  # (k, d)
+    PHt, L = _innovation_terms(P, rows, Hp, Hl, var)  # Σ Hᵀ (n x mk)
+    A = rows.ravel()
+    # K_A = (Σ Hᵀ)_A S⁻¹, via the Cholesky factor
+    KA = solve_triangular(L.T, solve_triangular(L, PHt[A].T, lower=True, check_finite=False), lower=False,
+                          check_finite=False).T  # (dk, mk)
+    dxA = KA @ r.reshape(-1)
+    update_rows = KA @ PHt.T  # K_A (H Σ)   (dk, n)
+    P[A, :] -= update_rows
+    P[:, A] = P[A, :].T
+    d = state.lm_dim
+    dx = dxA.reshape(k, d)
+    state.p_lm_in_world[slots] += dx[:, :3]
+    if d == 6:
+        state.v_lm_in_world[slots] += dx[:, 3:]
+
+
 def slam_update_reference(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
                           V: np.ndarray) -> None:
     """The plain (dense) formulation of :func:`slam_update`, for tests: builds the full
@@ -287,7 +338,8 @@ def _init_geometry(model: StereoModel, imu_T_world: np.ndarray, pixels: np.ndarr
 
 
 def slam_initialize_landmarks(state: SlamState, model: StereoModel, ids: np.ndarray, pixels: np.ndarray,
-                              V: np.ndarray, N_pose: np.ndarray | None = None) -> np.ndarray:
+                              V: np.ndarray, N_pose: np.ndarray | None = None,
+                              velocity_var: float = 0.0) -> np.ndarray:
     """Add landmarks to the joint state from one stereo observation each (guards already applied).
 
     With G_p = dm/dδ and G_z = dm/dz (see :func:`_init_geometry`)::
@@ -301,15 +353,47 @@ def slam_initialize_landmarks(state: SlamState, model: StereoModel, ids: np.ndar
     if k == 0:
         return np.zeros(0, dtype=np.int64)
     p_w, G_pose, G_pix = _init_geometry(model, state.imu_T_world, pixels)
-    Gp = G_pose.reshape(3 * k, POSE_DIM)
+    d = state.lm_dim
+    if d == 6:  # velocity rows: prior N(0, velocity_var I), independent of the rest
+        G_pose = np.concatenate([G_pose, np.zeros_like(G_pose)], axis=1)
+    Gp = G_pose.reshape(d * k, POSE_DIM)
     n = state.dim
     cross = Gp @ state.cov[:POSE_DIM, :n]  # Σ_m,x = G_p Σ_p,x
     new = Gp @ state.pose_cov @ Gp.T  # G_p Σ_pp G_pᵀ
     pix_cov = G_pix @ V @ np.swapaxes(G_pix, 1, 2)  # G_z V G_zᵀ per landmark
     for i in range(k):
-        new[3 * i:3 * i + 3, 3 * i:3 * i + 3] += pix_cov[i]
-    null = G_pose @ N_pose if N_pose is not None else None  # N_m = G_p N_pose
+        new[d * i:d * i + 3, d * i:d * i + 3] += pix_cov[i]
+        if d == 6:
+            new[d * i + 3:d * i + 6, d * i + 3:d * i + 6] += velocity_var * np.eye(3)
+    null = G_pose @ N_pose if N_pose is not None else None  # N_m = G_p N_pose (velocity: 0)
     return state.add_landmarks(ids, p_w, cross, new, null)
+
+
+def static_consistency_nis(model: StereoModel, imu_T_world_now: np.ndarray, z_now: np.ndarray,
+                           imu_T_world_then: np.ndarray, z_then: np.ndarray, V: np.ndarray,
+                           Q_rel: np.ndarray) -> np.ndarray:
+    """NIS of a landmark's earlier observation under the hypothesis that it is static.
+
+    The landmark is triangulated from ``z_now`` at the current pose and projected at the
+    earlier pose; the residual's covariance holds the triangulation (G_z V G_zᵀ), the
+    earlier observation's noise V and the relative pose uncertainty ``Q_rel`` (6x6, the
+    IMU noise accumulated in between)::
+
+        r = z_then − h(μ_then, m(μ_now, z_now))
+        S = H_l G_z V G_zᵀ H_lᵀ + H_p Q_rel H_pᵀ + V
+
+    A point on a moving vehicle or a mismatched track gives a large NIS. Returns (k,)
+    NIS values (+inf where the point is behind the earlier camera).
+    """
+    p_w, _, G_pix = _init_geometry(model, imu_T_world_now, z_now)
+    z_hat, Hp, Hl, in_front = model.predict(imu_T_world_then, p_w)
+    r = z_then - z_hat
+    HG = Hl @ G_pix
+    S = HG @ V @ np.swapaxes(HG, 1, 2) + Hp @ Q_rel @ np.swapaxes(Hp, 1, 2) + V
+    nis = np.full(len(z_now), np.inf)
+    if np.any(in_front):
+        nis[in_front] = innovation_nis(r[in_front], S[in_front])
+    return nis
 
 
 # ------------------------------------------------------------------ mapping (known poses)
