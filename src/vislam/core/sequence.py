@@ -117,6 +117,19 @@ class StereoObservations:
         np.cumsum(np.bincount(frame_idx, minlength=t), out=offsets[1:])
         return cls(offsets, lm_idx, pixels, m)
 
+    def previous_index(self) -> np.ndarray:
+        """(N,) row of the same landmark's observation in the previous frame, or -1."""
+        n = self.n_observations
+        out = np.full(n, -1, dtype=np.int64)
+        if n < 2:
+            return out
+        order = np.lexsort((self.frame_index, self.landmark_ids))  # by landmark, then frame
+        ids = self.landmark_ids[order]
+        frames = self.frame_index[order]
+        follows = (ids[1:] == ids[:-1]) & (frames[1:] == frames[:-1] + 1)
+        out[order[1:][follows]] = order[:-1][follows]
+        return out
+
     def repeated_mask(self) -> np.ndarray:
         """(N,) True for an observation whose four pixel values are bit-identical to the
         same landmark's observation in the previous frame.

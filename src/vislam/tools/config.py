@@ -1,0 +1,180 @@
+"""Inputs of a run besides the dataset: filter options and known poses.
+
+Option resolution (lowest to highest precedence):
+
+1. the documented defaults of :class:`~vislam.core.options.FilterOptions`;
+2. an options file (``--config FILE``): YAML (``.yaml``/``.yml``) or TOML (``.toml``),
+   a flat mapping of FilterOptions field names to values, e.g.::
+
+       # filter.yaml                       # filter.toml
+       velocity_noise_mps: 0.5             velocity_noise_mps = 0.5
+       angular_noise_radps: 0.05           angular_noise_radps = 0.05
+       gating_probability: null            gating_probability = "none"
+
+   The optional probabilities (``gating_probability``, ``drift_test_probability``)
+   accept ``null`` (YAML), ``false`` or the string ``"none"`` (TOML has no null) to
+   switch the test off. YAML numbers in exponent form without a dot (``3e-4``) are
+   read as numbers, not strings (PyYAML follows YAML 1.1 there; we do not);
+3. command-line flags (``overrides``).
+
+Every problem — a missing, unreadable or syntactically broken file, an unknown key, a
+value of the wrong type or out of range — is a :class:`~vislam.errors.ConfigError` whose
+one-line message names the file (or the flag) and the key.
+
+:func:`load_known_poses` reads the poses of ``--poses FILE`` (mapping with given poses).
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import yaml
+
+from vislam.core.options import FilterOptions
+from vislam.errors import ConfigError
+
+__all__ = ["CONFIG_SUFFIXES", "OPTIONAL_FIELDS", "load_options_file", "resolve_options", "load_known_poses",
+           "POSE_TIME_TOLERANCE_S"]
+
+#: File suffix -> format.
+CONFIG_SUFFIXES = {".yaml": "yaml", ".yml": "yaml", ".toml": "toml"}
+#: FilterOptions fields that may be switched off (None).
+OPTIONAL_FIELDS = ("gating_probability", "drift_test_probability")
+#: Largest difference (s) between a TUM pose file's timestamps and the dataset's.
+POSE_TIME_TOLERANCE_S = 0.02
+
+_OFF_WORDS = ("none", "null", "off")
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that also reads ``1e-3`` / ``5E+2`` (no dot) as floats."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(
+        r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+        |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+        |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+        |[-+]?\.(?:inf|Inf|INF)
+        |\.(?:nan|NaN|NAN))$""",
+        re.X,
+    ),
+    list("-+0123456789."),
+)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def load_options_file(path) -> dict[str, Any]:
+    """The mapping of an options file (YAML or TOML, by suffix); not yet validated
+    against FilterOptions (see :func:`resolve_options`). An empty YAML file is ``{}``."""
+    path = Path(path)
+    fmt = CONFIG_SUFFIXES.get(path.suffix.lower())
+    if fmt is None:
+        raise ConfigError(f"{path}: unsupported options file type {path.suffix or '(no suffix)'!r}; "
+                          f"expected {', '.join(CONFIG_SUFFIXES)}")
+    if not path.exists():
+        raise ConfigError(f"{path}: no such options file")
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a directory (options file expected)")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a UTF-8 text file ({fmt.upper()} options expected)") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+    if fmt == "toml":
+        try:
+            values = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: invalid TOML: {_one_line(exc)}") from None
+    else:
+        try:
+            values = yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+            problem = getattr(exc, "problem", None) or exc
+            raise ConfigError(f"{path}: invalid YAML{where}: {_one_line(problem)}") from None
+        if values is None:
+            values = {}
+    if not isinstance(values, Mapping):
+        raise ConfigError(f"{path}: expected a mapping of option names to values, got {type(values).__name__}")
+    bad_keys = [k for k in values if not isinstance(k, str)]
+    if bad_keys:
+        raise ConfigError(f"{path}: option names must be strings, got {bad_keys[0]!r}")
+    nested = [k for k, v in values.items() if isinstance(v, Mapping)]
+    if nested:
+        raise ConfigError(f"{path}: option {nested[0]!r} is a table/mapping; the file must be a flat mapping of "
+                          f"option names to values")
+    return dict(values)
+
+
+def _normalize(values: Mapping[str, Any]) -> dict[str, Any]:
+    """Map the off-words of the optional fields to None."""
+    out = dict(values)
+    for key in OPTIONAL_FIELDS:
+        value = out.get(key)
+        if value is False or (isinstance(value, str) and value.strip().lower() in _OFF_WORDS):
+            out[key] = None
+    return out
+
+
+def resolve_options(config_path=None, overrides: Mapping[str, Any] | None = None,
+                    flag_names: Mapping[str, str] | None = None) -> FilterOptions:
+    """FilterOptions from defaults < options file ``config_path`` < ``overrides``.
+
+    ``overrides`` maps field names to values; entries whose value is None are ignored
+    (an unset flag). To switch an optional test off from the command line pass the string
+    ``"none"``. ``flag_names`` (field -> flag, e.g. ``{"velocity_noise_mps":
+    "--velocity-noise"}``) names the flags in error messages about overridden values.
+    """
+    values: dict[str, Any] = {}
+    if config_path is not None:
+        source = str(config_path)
+        values = _normalize(load_options_file(config_path))
+        FilterOptions.from_dict(values, source=source)  # errors name the file
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if not given:
+        return FilterOptions.from_dict(values, source=str(config_path) if config_path is not None else "options")
+    given = _normalize(given)
+    try:
+        return FilterOptions.from_dict({**values, **given}, source="command line")
+    except ConfigError as exc:
+        message = str(exc)
+        for field, flag in (flag_names or {}).items():
+            if field in given:
+                message = re.sub(rf"\b{re.escape(field)}\b", flag, message)
+        raise ConfigError(message) from None
+
+
+def load_known_poses(path, sequence) -> np.ndarray:
+    """(T, 4, 4) world_T_imu poses from a TUM or KITTI file, one per frame of ``sequence``.
+
+    The format is detected from the number of values per line. A TUM file's timestamps
+    must match the dataset's (within :data:`POSE_TIME_TOLERANCE_S`). Raises
+    GroundTruthError for an unreadable or malformed file, ConfigError when the poses do
+    not match the dataset's frames.
+    """
+    from vislam.tools.trajectory_io import read_trajectory
+
+    traj = read_trajectory(path)
+    T = sequence.n_frames
+    if len(traj) != T:
+        raise ConfigError(f"{path}: {len(traj)} poses, but the dataset {sequence.source or sequence.name} has {T} "
+                          f"frames; --poses needs one world_T_imu pose per frame")
+    if traj.timestamps_s is not None:
+        dt = np.abs(traj.timestamps_s - sequence.timestamps_s)
+        i = int(np.argmax(dt))
+        if dt[i] > POSE_TIME_TOLERANCE_S:
+            raise ConfigError(f"{path}: pose {i} has timestamp {traj.timestamps_s[i]!r} but frame {i} of the dataset "
+                              f"is at {sequence.timestamps_s[i]!r} (difference {dt[i]:.3g} s > "
+                              f"{POSE_TIME_TOLERANCE_S:g} s)")
+    return traj.world_T_body

@@ -1,0 +1,457 @@
+"""The output directory of ``vislam run`` and ``vislam demo``.
+
+Files (all in the output directory ``DIR``):
+
+* ``trajectory.tum`` — ``timestamp tx ty tz qx qy qz qw`` of world_T_imu, one line per
+  frame processed, the dataset's timestamps;
+* ``trajectory.kitti`` — the 12 row-major values of world_T_imu's top 3x4 per frame;
+* ``landmarks.ply`` (mapping and SLAM) — the map as a binary little-endian PLY point
+  cloud (MeshLab, CloudCompare, Open3D open it): ``float x y z`` (world frame, m),
+  ``uchar red green blue`` (green: ok, red: rejected), ``int id`` (dataset landmark id),
+  ``int track``, ``int n_observations``, ``int n_gated``, ``uchar status`` (0 ok,
+  1 rejected) and ``float sigma``: √trace of the 3x3 position covariance (m), the
+  filter's RMS position uncertainty;
+* ``landmarks.npz`` (mapping and SLAM) — every field of the
+  :class:`~vislam.core.results.LandmarkMap` at full precision: ``ids``, ``track``,
+  ``p_lm_in_world`` (K, 3), ``covariance`` (K, 3, 3), ``n_observations``, ``n_gated``,
+  ``first_frame``, ``last_frame``, ``status``, ``v_lm_in_world`` (K, 3);
+* ``trajectory.png`` — the report's xy-plane figure (:mod:`vislam.tools.plotting`);
+* ``summary.json`` — what ran and how it went, see :func:`build_summary`;
+* demo only: ``groundtruth.tum`` / ``groundtruth.kitti`` (the true IMU poses) and
+  ``localization.tum`` (the dead-reckoning trajectory, for comparison).
+
+Atomicity: an :class:`OutputStage` writes every file into a hidden staging directory
+inside ``DIR`` and, once all are complete, renames them onto their final names
+(``os.replace``, with Ctrl-C deferred for those few renames). A failure or Ctrl-C before
+that leaves ``DIR`` as it was — no new file, no temporary debris (a directory the stage
+created is removed again). After a successful commit ``DIR`` holds one run's outputs:
+the landmark files of an earlier mapping/SLAM run are removed by a localization run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import shutil
+import signal
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from vislam.core.results import LandmarkMap, RunResult
+from vislam.errors import OutputError
+from vislam.tools.atomic import write_bytes_atomic, write_text_atomic
+from vislam.tools.npz import write_npz
+from vislam.tools.trajectory_io import write_kitti, write_tum
+
+__all__ = [
+    "TRAJECTORY_TUM",
+    "TRAJECTORY_KITTI",
+    "LANDMARKS_PLY",
+    "LANDMARKS_NPZ",
+    "FIGURE",
+    "SUMMARY",
+    "GROUNDTRUTH_TUM",
+    "GROUNDTRUTH_KITTI",
+    "LOCALIZATION_TUM",
+    "MODE_TITLES",
+    "OutputStage",
+    "landmark_arrays",
+    "write_landmarks_ply",
+    "json_safe",
+    "write_json",
+    "process_start_time",
+    "build_summary",
+    "absolute_trajectory_error",
+    "write_run_outputs",
+    "write_demo_outputs",
+]
+
+logger = logging.getLogger(__name__)
+
+TRAJECTORY_TUM = "trajectory.tum"
+TRAJECTORY_KITTI = "trajectory.kitti"
+LANDMARKS_PLY = "landmarks.ply"
+LANDMARKS_NPZ = "landmarks.npz"
+FIGURE = "trajectory.png"
+SUMMARY = "summary.json"
+GROUNDTRUTH_TUM = "groundtruth.tum"
+GROUNDTRUTH_KITTI = "groundtruth.kitti"
+LOCALIZATION_TUM = "localization.tum"
+#: Files that belong to one mode only; a commit without them removes older copies.
+_MODE_FILES = (LANDMARKS_PLY, LANDMARKS_NPZ)
+
+#: Mode names in titles and summaries.
+MODE_TITLES = {"localization": "IMU localization", "mapping": "Landmark mapping", "slam": "Visual-inertial SLAM"}
+
+_STAGE_PREFIX = ".vislam-staging-"
+
+
+# ----------------------------------------------------------------------------- staging
+
+
+@contextlib.contextmanager
+def _sigint_deferred():
+    """Hold back Ctrl-C (SIGINT) for the duration of the block, then deliver it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if received and callable(previous):
+            previous(signal.SIGINT, None)  # default handler: raises KeyboardInterrupt
+
+
+class OutputStage:
+    """All-or-nothing output into a directory.
+
+    Use as a context manager: entering creates ``out_dir`` if needed and a staging
+    directory in it (so an unwritable destination fails *before* any work); files are
+    written to :meth:`path` ``(name)``; :meth:`commit` moves them onto their final names.
+    Leaving the block without a commit (an exception, Ctrl-C) deletes the staging
+    directory and any directory the stage created.
+    """
+
+    def __init__(self, out_dir):
+        self.out_dir = Path(out_dir)
+        self.staging: Path | None = None
+        self.committed = False
+        self.files: list[Path] = []  # final paths, after commit
+        self._created: list[Path] = []
+
+    def __enter__(self) -> "OutputStage":
+        out = self.out_dir
+        if out.exists() and not out.is_dir():
+            raise OutputError(f"{out}: exists and is not a directory (an output directory is expected)")
+        missing = []
+        parent = out
+        while not parent.exists() and parent != parent.parent:
+            missing.append(parent)
+            parent = parent.parent
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot create the output directory: {exc.strerror or exc}") from None
+        self._created = missing  # deepest first
+        try:
+            self.staging = Path(tempfile.mkdtemp(prefix=_STAGE_PREFIX, dir=out))
+        except OSError as exc:
+            self._remove_created()
+            raise OutputError(f"{out}: cannot write in the output directory: {exc.strerror or exc}") from None
+        return self
+
+    def path(self, name: str) -> Path:
+        """Where to write the output ``name`` now (inside the staging directory)."""
+        if self.staging is None:
+            raise RuntimeError("OutputStage used outside its with-block")
+        return self.staging / name
+
+    def staged(self) -> list[str]:
+        """Names of the complete files staged so far (temporary files excluded)."""
+        if self.staging is None:
+            return []
+        return sorted(p.name for p in self.staging.iterdir() if not p.name.startswith("."))
+
+    def commit(self, order: Iterable[str] = (), remove_stale: Iterable[str] = _MODE_FILES) -> list[Path]:
+        """Rename the staged files onto their final names (``order`` first, the rest
+        after, alphabetically) and delete older copies of ``remove_stale`` files this run
+        did not produce. Ctrl-C is held back until the renames are done."""
+        names = self.staged()
+        ordered = [n for n in order if n in names] + [n for n in names if n not in order]
+        final: list[Path] = []
+        with _sigint_deferred():
+            try:
+                for name in ordered:
+                    os.replace(self.path(name), self.out_dir / name)
+                    final.append(self.out_dir / name)
+                for name in remove_stale:
+                    if name not in names:
+                        with contextlib.suppress(FileNotFoundError):
+                            (self.out_dir / name).unlink()
+            except OSError as exc:
+                raise OutputError(f"{self.out_dir}: cannot move the outputs into place: {exc.strerror or exc}") \
+                    from None
+            self.committed = True
+            self.files = final
+            self._cleanup()
+        return final
+
+    def _cleanup(self) -> None:
+        if self.staging is not None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+            self.staging = None
+
+    def _remove_created(self) -> None:
+        for d in self._created:  # deepest first; only if still empty
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        self._created = []
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if not self.committed:
+            self._cleanup()
+            self._remove_created()
+        else:
+            self._cleanup()
+
+
+# ----------------------------------------------------------------------------- landmarks
+
+
+def landmark_arrays(landmarks: LandmarkMap) -> dict[str, np.ndarray]:
+    """The arrays of ``landmarks.npz`` (every LandmarkMap field, numeric)."""
+    return {
+        "ids": np.asarray(landmarks.ids, dtype=np.int64),
+        "track": np.asarray(landmarks.track, dtype=np.int64),
+        "p_lm_in_world": np.asarray(landmarks.p_lm_in_world, dtype=np.float64).reshape(-1, 3),
+        "covariance": np.asarray(landmarks.covariance, dtype=np.float64).reshape(-1, 3, 3),
+        "n_observations": np.asarray(landmarks.n_observations, dtype=np.int64),
+        "n_gated": np.asarray(landmarks.n_gated, dtype=np.int64),
+        "first_frame": np.asarray(landmarks.first_frame, dtype=np.int64),
+        "last_frame": np.asarray(landmarks.last_frame, dtype=np.int64),
+        "status": np.asarray(landmarks.status, dtype=np.uint8),
+        "v_lm_in_world": np.asarray(landmarks.v_lm_in_world, dtype=np.float64).reshape(-1, 3),
+    }
+
+
+_PLY_DTYPE = np.dtype([
+    ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+    ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+    ("id", "<i4"), ("track", "<i4"), ("n_observations", "<i4"), ("n_gated", "<i4"),
+    ("status", "u1"), ("sigma", "<f4"),
+])
+_PLY_TYPES = {"<f4": "float", "|u1": "uchar", "<i4": "int"}
+_COLOR_OK = (46, 160, 67)
+_COLOR_REJECTED = (220, 30, 30)
+
+
+def write_landmarks_ply(path, landmarks: LandmarkMap, comments: Iterable[str] = ()) -> None:
+    """Write the map as a binary little-endian PLY point cloud (atomically); see the
+    module docstring for the vertex properties."""
+    n = len(landmarks)
+    v = np.zeros(n, dtype=_PLY_DTYPE)
+    p = np.asarray(landmarks.p_lm_in_world, dtype=np.float64).reshape(-1, 3)
+    v["x"], v["y"], v["z"] = p[:, 0], p[:, 1], p[:, 2]
+    status = np.asarray(landmarks.status, dtype=np.uint8)
+    colors = np.where((status != 0)[:, None], _COLOR_REJECTED, _COLOR_OK)
+    v["red"], v["green"], v["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
+    v["id"] = landmarks.ids
+    v["track"] = landmarks.track
+    v["n_observations"] = landmarks.n_observations
+    v["n_gated"] = landmarks.n_gated
+    v["status"] = status
+    trace = np.trace(np.asarray(landmarks.covariance, dtype=np.float64).reshape(-1, 3, 3), axis1=1, axis2=2)
+    with np.errstate(invalid="ignore"):
+        v["sigma"] = np.sqrt(trace)
+    header = ["ply", "format binary_little_endian 1.0"]
+    header += [f"comment {' '.join(str(c).split())}" for c in comments]
+    header += ["comment world frame = first IMU pose (x forward, y left, z up), metres",
+               "comment status: 0 ok, 1 rejected; sigma: sqrt(trace of the position covariance) in m",
+               f"element vertex {n}"]
+    header += [f"property {_PLY_TYPES[_PLY_DTYPE[name].str]} {name}" for name in _PLY_DTYPE.names]
+    header.append("end_header")
+    data = ("\n".join(header) + "\n").encode("ascii") + v.tobytes()
+    write_bytes_atomic(path, data)
+
+
+# ----------------------------------------------------------------------------- summary
+
+
+def json_safe(value):
+    """Plain JSON types; numpy scalars/arrays converted, non-finite floats -> None."""
+    if isinstance(value, Mapping):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def write_json(path, data: Mapping[str, Any]) -> None:
+    """Strict JSON (non-finite floats become null), atomically."""
+    write_text_atomic(path, json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n")
+
+
+def process_start_time() -> float | None:
+    """The epoch time at which this process started (Linux ``/proc``), or None."""
+    try:
+        stat = Path("/proc/self/stat").read_text()
+        start_ticks = int(stat[stat.rindex(")") + 2:].split()[19])  # field 22: starttime
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        elapsed = uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+    if not 0.0 <= elapsed < 30 * 86400:
+        return None
+    return time.time() - elapsed
+
+
+def build_summary(result: RunResult, *, dataset: Mapping[str, Any], duration_s: float, start_time: float | None,
+                  outputs: Iterable[str] = (), extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The content of ``summary.json``.
+
+    Keys: ``vislam_version``, ``dataset`` (name, path, …), ``mode``, ``options``
+    (FilterOptions.to_dict()), ``frames``, ``frames_processed``, ``landmarks_initialized``,
+    ``landmarks_in_map``, ``landmarks_rejected`` (map entries flagged rejected),
+    ``observations_total/used/gated/repeated/not_initialized``, ``filter_seconds`` (time
+    in estimation only), ``frame_ms_median``, ``frame_ms_p95``, ``total_seconds`` (from
+    ``start_time``, an epoch time — the process start when known — to now),
+    ``duration_s`` (of the recording), ``real_time_factor`` (filter_seconds / duration of
+    the frames processed; < 1 is faster than real time), ``partial``, ``error``,
+    ``outputs`` and the entries of ``extra``. Non-finite numbers become null on writing.
+    """
+    from vislam import __version__
+
+    stats = result.stats
+    s: dict[str, Any] = {"vislam_version": __version__, "dataset": dict(dataset), "mode": result.mode,
+                         "options": result.options.to_dict()}
+    s.update(stats.to_dict())
+    lm = result.landmarks
+    s["landmarks_in_map"] = len(lm) if lm is not None else 0
+    s["landmarks_rejected"] = int(np.count_nonzero(lm.status)) if lm is not None else stats.landmarks_rejected
+    ts = np.asarray(result.timestamps_s, dtype=np.float64)
+    processed_s = float(ts[-1] - ts[0]) if ts.size > 1 else 0.0
+    s["duration_s"] = float(duration_s)
+    s["real_time_factor"] = stats.filter_seconds / processed_s if processed_s > 0 else None
+    s["total_seconds"] = (time.time() - start_time) if start_time is not None else None
+    s["partial"] = bool(result.partial)
+    s["error"] = result.error
+    s["outputs"] = list(outputs)
+    if extra:
+        s.update(extra)
+    return s
+
+
+def absolute_trajectory_error(est_world_T_imu: np.ndarray, gt_world_T_imu: np.ndarray) -> float | None:
+    """ATE (m): RMSE of the position after SE(3) Umeyama alignment of the estimate onto
+    the ground truth (evo, via :func:`vislam.tools.evaluation.evaluate`), over the
+    frames both have; None when fewer than 2 frames can be compared."""
+    from vislam.tools.evaluation import evaluate
+
+    n = min(len(est_world_T_imu), len(gt_world_T_imu))
+    if n < 2:
+        return None
+    return float(evaluate(est_world_T_imu[:n], gt_world_T_imu[:n]).ape.rmse)
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _figure_subtitle(result: RunResult, extra: str | None = None) -> str:
+    st = result.stats
+    parts = [f"{st.frames_processed} frames"]
+    if st.frames_processed != st.frames:
+        parts[0] += f" of {st.frames} (stopped early)"
+    if result.landmarks is not None:
+        n_rej = int(np.count_nonzero(result.landmarks.status))
+        parts.append(f"{len(result.landmarks)} landmarks" + (f", {n_rej} rejected" if n_rej else ""))
+    if extra:
+        parts.append(extra)
+    return " · ".join(parts)
+
+
+def _write_common(stage: OutputStage, result: RunResult, dataset_name: str, curves, subtitle_extra: str | None,
+                  ply_comments: Iterable[str]) -> dict:
+    from vislam.tools.plotting import plot_trajectory_map
+
+    write_tum(stage.path(TRAJECTORY_TUM), result.timestamps_s, result.world_T_imu)
+    write_kitti(stage.path(TRAJECTORY_KITTI), result.world_T_imu)
+    if result.landmarks is not None:
+        write_npz(stage.path(LANDMARKS_NPZ), landmark_arrays(result.landmarks))
+        write_landmarks_ply(stage.path(LANDMARKS_PLY), result.landmarks, comments=ply_comments)
+    title = f"{dataset_name} — {MODE_TITLES.get(result.mode, result.mode)}"
+    if result.partial:
+        title += " (partial)"
+    return plot_trajectory_map(stage.path(FIGURE), curves, result.landmarks, title=title,
+                               subtitle=_figure_subtitle(result, subtitle_extra))
+
+
+_COMMIT_ORDER = (TRAJECTORY_TUM, TRAJECTORY_KITTI, LANDMARKS_NPZ, LANDMARKS_PLY, FIGURE, GROUNDTRUTH_TUM,
+                 GROUNDTRUTH_KITTI, LOCALIZATION_TUM, SUMMARY)
+
+
+def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping[str, Any], duration_s: float,
+                      start_time: float | None, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Write the outputs of ``vislam run`` for ``result`` into ``stage`` and commit them.
+
+    ``dataset`` (``name`` and ``path`` at least) goes into summary.json and the figure's
+    title. Returns the summary written.
+    """
+    from vislam.tools.plotting import TrajectoryCurve
+
+    name = str(dataset.get("label") or dataset.get("name") or result.sequence_name)
+    label = "trajectory (localization poses)" if result.mode == "mapping" else "trajectory"
+    if result.mode == "mapping" and dataset.get("poses") not in (None, "localization"):
+        label = "trajectory (given poses)"
+    curves = [TrajectoryCurve(result.world_T_imu, label)]
+    view = _write_common(stage, result, name, curves, None,
+                         [f"vislam landmarks of {name} ({result.mode})"])
+    extra = {**(extra or {}), "landmarks_outside_figure": view["landmarks_outside_view"]}
+    summary = build_summary(result, dataset=dataset, duration_s=duration_s, start_time=start_time,
+                            outputs=stage.staged() + [SUMMARY], extra=extra)
+    write_json(stage.path(SUMMARY), summary)
+    stage.commit(order=_COMMIT_ORDER)
+    return summary
+
+
+def write_demo_outputs(stage: OutputStage, slam: RunResult, localization: RunResult, true_world_T_imu: np.ndarray,
+                       *, dataset: Mapping[str, Any], duration_s: float, start_time: float | None,
+                       extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Write the outputs of ``vislam demo`` into ``stage`` and commit them: those of a
+    SLAM run, plus the ground truth, the localization trajectory, and in summary.json
+    the ATE of SLAM and of localization against the truth. Returns the summary."""
+    from vislam.tools.plotting import TrajectoryCurve
+
+    ate_slam = absolute_trajectory_error(slam.world_T_imu, true_world_T_imu)
+    ate_loc = absolute_trajectory_error(localization.world_T_imu, true_world_T_imu)
+    name = str(dataset.get("label") or dataset.get("name") or slam.sequence_name)
+    curves = [
+        TrajectoryCurve(true_world_T_imu, "ground truth", color="0.25", linestyle="-", linewidth=3.2, zorder=2,
+                        mark_ends=False),
+        TrajectoryCurve(localization.world_T_imu, "IMU localization (dead reckoning)", color="tab:orange",
+                        linestyle="--", linewidth=1.4, zorder=3, mark_ends=False),
+        TrajectoryCurve(slam.world_T_imu, "SLAM estimate", color="tab:blue", linewidth=1.6, zorder=4),
+    ]
+
+    def fmt(x):
+        return "n/a" if x is None else f"{x:.2f} m"
+
+    view = _write_common(stage, slam, name, curves, f"ATE: SLAM {fmt(ate_slam)}, localization {fmt(ate_loc)}",
+                         [f"vislam demo landmarks of {name} (slam)"])
+    timestamps = localization.timestamps_s  # every frame (SLAM's may stop early)
+    write_tum(stage.path(GROUNDTRUTH_TUM), timestamps, true_world_T_imu)
+    write_kitti(stage.path(GROUNDTRUTH_KITTI), true_world_T_imu)
+    write_tum(stage.path(LOCALIZATION_TUM), timestamps, localization.world_T_imu)
+    ground_truth = {
+        "ate_m": {"slam": ate_slam, "localization": ate_loc},
+        "ate_method": "RMSE of the IMU position after SE(3) Umeyama alignment (evo APE, translation part, "
+                      "via vislam.tools.evaluation.evaluate)",
+        "localization_filter_seconds": localization.stats.filter_seconds,
+    }
+    extra = {**(extra or {}), "ground_truth": ground_truth, "landmarks_outside_figure": view["landmarks_outside_view"]}
+    summary = build_summary(slam, dataset=dataset, duration_s=duration_s, start_time=start_time,
+                            outputs=stage.staged() + [SUMMARY], extra=extra)
+    write_json(stage.path(SUMMARY), summary)
+    stage.commit(order=_COMMIT_ORDER)
+    return summary

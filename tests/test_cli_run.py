@@ -1,0 +1,221 @@
+"""``vislam run`` and ``vislam demo`` end to end (subprocesses), plus in-process checks of
+partial runs and Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import shared_file
+from vislam.cli import main
+from vislam.core.simulate import SimulationOptions, simulate_drive
+from vislam.errors import EstimationError
+from vislam.tools.dataset_io import save_sequence
+from vislam.tools.trajectory_io import read_tum, write_kitti
+
+N_FRAMES = 100
+TRAJ = {"trajectory.tum", "trajectory.kitti", "trajectory.png", "summary.json"}
+LANDMARKS = {"landmarks.ply", "landmarks.npz"}
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    """A short simulated drive saved in the dataset format, with its truth."""
+    directory = tmp_path_factory.mktemp("data")
+    drive = simulate_drive(SimulationOptions(n_frames=N_FRAMES))
+    path = directory / "drive.npz"
+    save_sequence(drive.sequence, path)
+    return path, drive
+
+
+def vislam(*args, timeout=300):
+    return subprocess.run([sys.executable, "-m", "vislam", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def _lines(path):
+    return [line for line in path.read_text().splitlines() if line.strip()]
+
+
+@pytest.mark.parametrize("mode", ["localization", "mapping", "slam"])
+def test_run_writes_the_outputs_of_each_mode(tmp_path, sim, mode):
+    data, drive = sim
+    out = tmp_path / "out"
+    proc = vislam("run", data, "--mode", mode, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == ""  # not a terminal: no progress bar
+    assert str(out) in proc.stdout and "filter time" in proc.stdout
+    expected = TRAJ | (LANDMARKS if mode != "localization" else set())
+    assert {p.name for p in out.iterdir()} == expected
+    assert len(_lines(out / "trajectory.tum")) == N_FRAMES
+    assert len(_lines(out / "trajectory.kitti")) == N_FRAMES
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["mode"] == mode and summary["frames"] == N_FRAMES and summary["partial"] is False
+    assert summary["dataset"]["name"] == "drive" and summary["dataset"]["path"] == str(data.resolve())
+    ts, poses = read_tum(out / "trajectory.tum")
+    np.testing.assert_allclose(ts, drive.sequence.timestamps_s, atol=1e-9)
+    # pixel noise only, no IMU noise: every mode follows the true drive closely
+    err = np.linalg.norm(poses[:, :3, 3] - drive.world_T_imu[:, :3, 3], axis=1)
+    assert err.max() < 1.0, err.max()
+
+
+def test_quiet_prints_nothing(tmp_path, sim):
+    data, _ = sim
+    proc = vislam("run", data, "--mode", "slam", "--out", tmp_path / "q", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "" and proc.stderr == ""
+    assert {p.name for p in (tmp_path / "q").iterdir()} == TRAJ | LANDMARKS
+
+
+def test_config_file_and_flags_reach_the_filter(tmp_path, sim):
+    data, _ = sim
+    config = tmp_path / "filter.toml"
+    config.write_text('velocity_noise_mps = 0.5\nangular_noise_radps = 0.05\nekf = "standard"\n')
+    proc = vislam("run", data, "--out", tmp_path / "o", "--quiet", "--config", config, "--angular-noise", "0.01",
+                  "--gate", "off", "--keep-all-landmarks")
+    assert proc.returncode == 0, proc.stderr
+    options = json.loads((tmp_path / "o" / "summary.json").read_text())["options"]
+    assert options["velocity_noise_mps"] == 0.5  # file
+    assert options["ekf"] == "standard"  # file
+    assert options["angular_noise_radps"] == 0.01  # flag beats file
+    assert options["gating_probability"] is None and options["keep_all_landmarks"] is True  # flags
+    assert options["pixel_noise_px"] == 2.0  # default
+
+
+def test_mapping_with_given_poses(tmp_path, sim):
+    data, drive = sim
+    poses = tmp_path / "truth.kitti"
+    write_kitti(poses, drive.world_T_imu)
+    proc = vislam("run", data, "--mode", "mapping", "--poses", poses, "--out", tmp_path / "m", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    _, est = read_tum(tmp_path / "m" / "trajectory.tum")
+    np.testing.assert_allclose(est, drive.world_T_imu, atol=1e-6)
+    summary = json.loads((tmp_path / "m" / "summary.json").read_text())
+    assert summary["dataset"]["poses"] == str(poses.resolve())
+
+
+def _bad_inputs(tmp_path, data, drive):
+    bad_npz = tmp_path / "bad.npz"
+    bad_npz.write_bytes(b"this is not a zip file")
+    bad_yaml = tmp_path / "bad.yaml"
+    bad_yaml.write_text("velocity_noise_mps: [0.5\n")
+    unknown = tmp_path / "unknown.toml"
+    unknown.write_text("velocity_noise = 0.5\n")
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file, not a directory")
+    short = tmp_path / "short.kitti"
+    write_kitti(short, drive.world_T_imu[:10])
+    return {
+        "missing data": (["run", tmp_path / "missing.npz"], "missing.npz"),
+        "bad npz": (["run", bad_npz], "bad.npz"),
+        "bad config syntax": (["run", data, "--config", bad_yaml], "bad.yaml"),
+        "unknown config key": (["run", data, "--config", unknown], "velocity_noise"),
+        "missing config": (["run", data, "--config", tmp_path / "nope.yaml"], "nope.yaml"),
+        "bad flag value": (["run", data, "--pixel-noise", "-1"], "--pixel-noise"),
+        "out is a file": (["run", data, "--out-override", blocker], "blocker"),
+        "out under a file": (["run", data, "--out-override", blocker / "sub"], "blocker"),
+        "wrong pose count": (["run", data, "--mode", "mapping", "--poses", short], "short.kitti"),
+        "poses without mapping": (["run", data, "--poses", short], "--poses"),
+    }
+
+
+def test_bad_inputs_give_one_line_and_no_output(tmp_path, sim):
+    data, drive = sim
+    cases = _bad_inputs(tmp_path, data, drive)
+    for name, (args, needle) in cases.items():
+        out = tmp_path / f"out-{name.replace(' ', '-')}"
+        if "--out-override" in args:
+            i = args.index("--out-override")
+            out = args[i + 1]
+            args = args[:i] + args[i + 2:]
+        proc = vislam(*args, "--out", out)
+        assert proc.returncode != 0, name
+        lines = proc.stderr.splitlines()
+        assert len(lines) == 1, (name, proc.stderr)
+        assert "Traceback" not in proc.stderr
+        assert lines[0].startswith("vislam run: error:"), (name, lines[0])
+        assert needle in lines[0], (name, lines[0])
+        assert proc.stdout == ""
+        if out.name != "blocker":
+            assert not out.exists(), name
+    assert (tmp_path / "blocker").read_text() == "a file, not a directory"
+
+
+def test_partial_run_writes_outputs_and_fails(tmp_path, sim, monkeypatch, capsys):
+    from vislam.core import estimators
+
+    data, _ = sim
+    real_update = estimators.slam_update
+    calls = {"n": 0}
+
+    def failing_update(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] >= 50:
+            raise EstimationError("simulated divergence")
+        return real_update(*args, **kwargs)
+
+    monkeypatch.setattr(estimators, "slam_update", failing_update)
+    out = tmp_path / "partial"
+    code = main(["run", str(data), "--out", str(out), "--quiet"])
+    captured = capsys.readouterr()
+    assert code != 0
+    assert captured.out == ""
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and "simulated divergence" in lines[0] and "partial" in lines[0]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["partial"] is True and "simulated divergence" in summary["error"]
+    assert 0 < summary["frames_processed"] < N_FRAMES
+    assert len(_lines(out / "trajectory.tum")) == summary["frames_processed"]
+    assert {p.name for p in out.iterdir()} == TRAJ | LANDMARKS
+
+
+def test_ctrl_c_leaves_no_output_and_says_so(tmp_path, sim, monkeypatch, capsys):
+    from vislam.core import estimators
+
+    data, _ = sim
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(estimators, "run_slam", interrupted)
+    out = tmp_path / "interrupted"
+    code = main(["run", str(data), "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 130
+    assert "interrupted" in captured.err and "no output" in captured.err
+    assert len(captured.err.splitlines()) == 1
+    assert not out.exists()
+
+
+def test_demo(tmp_path):
+    out = tmp_path / "demo"
+    proc = vislam("demo", "--out", out, "--frames", 150, "--seed", 3)
+    assert proc.returncode == 0, proc.stderr
+    assert "ATE" in proc.stdout
+    names = {p.name for p in out.iterdir()}
+    assert names >= TRAJ | LANDMARKS | {"groundtruth.tum", "groundtruth.kitti"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["mode"] == "slam" and summary["frames"] == 150
+    assert summary["options"]["velocity_noise_mps"] == 0.5 and summary["options"]["angular_noise_radps"] == 0.05
+    assert summary["dataset"]["simulation"]["seed"] == 3
+    ate = summary["ground_truth"]["ate_m"]
+    assert 0 < ate["slam"] < ate["localization"]
+    assert len(_lines(out / "groundtruth.tum")) == 150
+    quiet = vislam("demo", "--out", tmp_path / "q", "--frames", 60, "--quiet")
+    assert quiet.returncode == 0 and quiet.stdout == "" and quiet.stderr == ""
+
+
+def test_run_on_shared_sparse_0042(tmp_path):
+    data = shared_file("sparse/0042.npz")
+    out = tmp_path / "0042"
+    proc = vislam("run", data, "--mode", "slam", "--out", out, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == summary["frames_processed"] == 500
+    assert len(_lines(out / "trajectory.tum")) == 500
+    assert summary["landmarks_in_map"] > 0
+    assert summary["real_time_factor"] < 1.0
