@@ -1,7 +1,8 @@
 """``vislam demo [--out DIR]``: SLAM on a built-in simulated drive, graded against its truth.
 
 Simulates the default drive with a noisy IMU (0.5 m/s and 0.05 rad/s white noise per
-axis and sample, 1 px pixel noise: the case where SLAM shines), runs SLAM with matching
+axis and sample, the simulator's default 0.5 px pixel noise: the case where SLAM
+shines), runs SLAM with matching
 filter noise and IMU-only localization for comparison, and writes the outputs of
 ``vislam run`` plus the ground truth (``groundtruth.tum``/``.kitti``), the localization
 trajectory (``localization.tum``) and, in summary.json, the ATE of both
@@ -20,8 +21,9 @@ __all__ = ["register", "run", "DEMO_NOISE"]
 
 _COMMAND_START = time.time()
 
-#: IMU noise of the demo drive (and of the filter), per axis and sample; pixel noise of the drive.
-DEMO_NOISE = {"velocity_noise_mps": 0.5, "angular_noise_radps": 0.05, "pixel_noise_px": 1.0}
+#: IMU noise of the demo drive (and of the filter), per axis and sample (the simulator's
+#: default drive otherwise, with 0.5 px pixel noise).
+DEMO_NOISE = {"velocity_noise_mps": 0.5, "angular_noise_radps": 0.05}
 
 
 def register(subparsers) -> None:
