@@ -12,15 +12,7 @@ import sys
 from pathlib import Path
 
 from vislam.errors import ConfigError, OutputError
-from vislam.tools.evaluation import (
-    DEFAULT_MAX_DIFF_S,
-    GT_FORMATS,
-    GT_FRAMES,
-    evaluate_files,
-    format_table,
-    plot_error_over_distance,
-    write_metrics_json,
-)
+from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, GT_FORMATS, GT_FRAMES
 
 __all__ = ["register", "run"]
 
@@ -57,6 +49,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from vislam.tools.evaluation import evaluate_files, format_table, plot_error_over_distance, write_metrics_json
+
     if args.gt_frame == "cam" and not args.dataset:
         raise ConfigError(
             "--gt-frame cam needs --dataset DATA: the dataset's cam_T_imu converts the camera ground truth to the IMU"

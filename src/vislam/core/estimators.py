@@ -106,51 +106,72 @@ def run_localization(sequence: Sequence, options: FilterOptions | None = None, p
 # ----------------------------------------------------------------------------- shared pieces
 
 
-def _repeated_observations(sequence: Sequence, options: FilterOptions, stats: RunStats) -> np.ndarray:
-    """(N,) True for observations that repeat the previous frame's pixels (and are not to
-    be used as they are, per ``options.repeated_observations``)."""
-    obs = sequence.observations
-    if options.repeated_observations == "use":
-        return np.zeros(obs.n_observations, dtype=bool)
-    repeated = obs.repeated_mask()
-    stats.observations_repeated = int(repeated.sum())
-    if stats.observations_repeated:
-        logger.info("%s: %d observations repeat the previous frame's pixels exactly (%s)", sequence.name,
-                    stats.observations_repeated, options.repeated_observations)
-    return repeated
+class _RepeatDetector:
+    """Flags, frame by frame, observations whose four pixels repeat the same landmark's
+    observation in the previous frame bit for bit (see
+    :meth:`vislam.core.sequence.StereoObservations.repeated_mask`, which is the same test
+    over a whole sequence). Memory: one pixel row per landmark id."""
+
+    def __init__(self, M: int, options: FilterOptions, stats: RunStats, name: str):
+        self.enabled = options.repeated_observations != "use"
+        self.px = np.zeros((M, 4))
+        self.frame = np.full(M, -2, dtype=np.int64)
+        self.stats = stats
+
+    def __call__(self, t: int, ids: np.ndarray, z: np.ndarray) -> np.ndarray:
+        if not self.enabled:
+            return np.zeros(ids.size, dtype=bool)
+        rep = (self.frame[ids] == t - 1) & np.all(self.px[ids] == z, axis=1)
+        self.px[ids] = z
+        self.frame[ids] = t
+        self.stats.observations_repeated += int(rep.sum())
+        return rep
 
 
 class _MapBuilder:
-    """Collects frozen landmark entries (marginalized, rejected or final)."""
+    """Collects frozen landmark entries (marginalized, rejected or final) in growable
+    column buffers (amortized O(1) per entry, no per-call small arrays)."""
 
-    _KEYS = ("ids", "track", "p", "cov", "nobs", "ngated", "first", "last", "status", "v")
+    _COLUMNS = {"ids": ((), np.int64), "track": ((), np.int64), "p": ((3,), np.float64),
+                "cov": ((3, 3), np.float64), "nobs": ((), np.int64), "ngated": ((), np.int64),
+                "first": ((), np.int64), "last": ((), np.int64), "status": ((), np.uint8),
+                "v": ((3,), np.float64)}
 
-    def __init__(self):
-        self._cols: dict[str, list] = {k: [] for k in self._KEYS}
+    def __init__(self, capacity: int = 256):
+        self.n = 0
+        self._cols = {k: np.zeros((capacity,) + shape, dtype=dt) for k, (shape, dt) in self._COLUMNS.items()}
 
     def add(self, ids, track, p, cov, nobs, ngated, first, last, status, v=None) -> None:
+        k = int(np.size(ids))
+        if k == 0:
+            return
+        if self.n + k > len(self._cols["ids"]):
+            cap = max(self.n + k, 2 * len(self._cols["ids"]))
+            for key, col in self._cols.items():
+                grown = np.zeros((cap,) + col.shape[1:], dtype=col.dtype)
+                grown[:self.n] = col[:self.n]
+                self._cols[key] = grown
+        sl = slice(self.n, self.n + k)
         c = self._cols
-        c["v"].append(np.zeros((np.size(ids), 3)) if v is None else np.asarray(v, dtype=np.float64).reshape(-1, 3))
-        c["ids"].append(np.asarray(ids, dtype=np.int64))
-        c["track"].append(np.asarray(track, dtype=np.int64))
-        c["p"].append(np.asarray(p, dtype=np.float64).reshape(-1, 3))
-        c["cov"].append(np.asarray(cov, dtype=np.float64).reshape(-1, 3, 3))
-        c["nobs"].append(np.asarray(nobs, dtype=np.int64))
-        c["ngated"].append(np.asarray(ngated, dtype=np.int64))
-        c["first"].append(np.asarray(first, dtype=np.int64))
-        c["last"].append(np.asarray(last, dtype=np.int64))
-        c["status"].append(np.broadcast_to(np.asarray(status, dtype=np.uint8), np.shape(ids)).copy())
+        c["ids"][sl] = ids
+        c["track"][sl] = track
+        c["p"][sl] = np.reshape(p, (k, 3))
+        c["cov"][sl] = np.reshape(cov, (k, 3, 3))
+        c["nobs"][sl] = nobs
+        c["ngated"][sl] = ngated
+        c["first"][sl] = first
+        c["last"][sl] = last
+        c["status"][sl] = status
+        c["v"][sl] = 0.0 if v is None else np.reshape(v, (k, 3))
+        self.n += k
 
     def build(self) -> LandmarkMap:
-        c = self._cols
-        if not c["ids"]:
-            return LandmarkMap.empty()
-        cat = {k: np.concatenate(v) for k, v in c.items()}
-        order = np.lexsort((cat["track"], cat["ids"]))
-        return LandmarkMap(ids=cat["ids"][order], track=cat["track"][order], p_lm_in_world=cat["p"][order],
-                           covariance=cat["cov"][order], n_observations=cat["nobs"][order],
-                           n_gated=cat["ngated"][order], first_frame=cat["first"][order],
-                           last_frame=cat["last"][order], status=cat["status"][order], v_lm_in_world=cat["v"][order])
+        c = {k: v[:self.n] for k, v in self._cols.items()}
+        order = np.lexsort((c["track"], c["ids"]))
+        return LandmarkMap(ids=c["ids"][order], track=c["track"][order], p_lm_in_world=c["p"][order],
+                           covariance=c["cov"][order], n_observations=c["nobs"][order],
+                           n_gated=c["ngated"][order], first_frame=c["first"][order],
+                           last_frame=c["last"][order], status=c["status"][order], v_lm_in_world=c["v"][order])
 
 
 class _Tracks:
@@ -288,7 +309,7 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
     builder = _MapBuilder()
     stats = RunStats(frames=T, observations_total=sequence.observations.n_observations)
     obs = sequence.observations
-    repeated = _repeated_observations(sequence, options, stats)
+    repeated = _RepeatDetector(M, options, stats, sequence.name)
     split = options.repeated_observations == "split"
     frame_seconds = np.zeros(T)
     frame_seconds[0] = time.perf_counter() - t_start
@@ -301,7 +322,7 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
     for t in range(T):
         tic = time.perf_counter()
         ids, z = obs.frame(t)
-        rep = repeated[obs.frame_offsets[t]:obs.frame_offsets[t + 1]]
+        rep = repeated(t, ids, z)
         if split and np.any(rep & active[ids]):
             freeze(ids[rep & active[ids]], LANDMARK_OK)  # the track ends; the repeat starts a new one
             rep = np.zeros_like(rep)
@@ -367,7 +388,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
     stats = RunStats(frames=T, observations_total=sequence.observations.n_observations)
     frame_seconds = np.zeros(T)
     obs = sequence.observations
-    repeated = _repeated_observations(sequence, options, stats)
+    repeated = _RepeatDetector(M, options, stats, sequence.name)
     split = options.repeated_observations == "split"
     seen = np.zeros(M, dtype=bool)
     last_correction = np.zeros(6)  # pose correction of the previous update (OC transition)
@@ -402,7 +423,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                 # unobservable directions of the pose at the prior (OC variant)
                 N_pose = -se3_adjoint(mu_prior) if oc else None
                 ids_seen, z = obs.frame(t)
-                rep = repeated[obs.frame_offsets[t]:obs.frame_offsets[t + 1]]
+                rep = repeated(t, ids_seen, z)
                 if split and np.any(rep):
                     slots_rep = state.slot_of[ids_seen[rep]]
                     freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one

@@ -31,7 +31,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 __all__ = [
     "SMALL_ANGLE",
@@ -120,6 +119,8 @@ def so3_log(R) -> np.ndarray:
     flat = R.reshape(-1, 3, 3)
     if flat.shape[0] == 0:
         return np.zeros(lead + (3,))
+    from scipy.spatial.transform import Rotation  # lazy: keeps `import vislam` light
+
     rotvec = Rotation.from_matrix(flat).as_rotvec()
     return rotvec.reshape(lead + (3,))
 

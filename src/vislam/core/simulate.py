@@ -71,8 +71,6 @@ from dataclasses import dataclass, fields
 from typing import Any, Mapping
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
-from scipy.spatial import cKDTree
 
 from vislam.core.camera import StereoCamera
 from vislam.core.lie import se3_exp, se3_inverse
@@ -510,6 +508,8 @@ def _road_profiles(opts: SimulationOptions, rng: np.random.Generator, s_max: flo
     with np.errstate(divide="ignore"):
         corner_limit = np.sqrt(_LATERAL_ACCELERATION_MPS2 / np.abs(curvature))
     target = np.clip(np.minimum(cruise, corner_limit), lo, hi)
+    from scipy.ndimage import gaussian_filter1d  # lazy: keeps `import vislam` light
+
     speed = gaussian_filter1d(target, sigma=20.0 / ds, mode="nearest")
     return _RoadProfiles(s=s, curvature=curvature, grade=grade, roll=roll, speed=np.clip(speed, lo, hi))
 
@@ -643,6 +643,8 @@ class _Landmarks:
 
 
 def _static_landmarks(opts: SimulationOptions, path: _Path, rng: np.random.Generator) -> _Landmarks:
+    from scipy.spatial import cKDTree  # lazy: keeps `import vislam` light
+
     s_end = float(path.arc[-1])
     ss, lat, height, kind = [], [], [], []
 
@@ -843,6 +845,8 @@ def _within_track_window(pairs: _Pairs, landmarks: _Landmarks, first_start: np.n
 
 def _static_pairs(opts, cam_T_world, camera_positions, landmarks: _Landmarks, camera, rng_noise) -> _Pairs:
     """Visible (landmark, frame) pairs of static landmarks, frame chunk by frame chunk."""
+    from scipy.spatial import cKDTree  # lazy: keeps `import vislam` light
+
     tree = cKDTree(landmarks.p_ref)
     first_start = np.full(landmarks.p_ref.shape[0], np.iinfo(np.int64).max // 2)
     parts = []

@@ -39,7 +39,7 @@ from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.metrics import KittiOdometryErrors, kitti_odometry_errors, trajectory_distances
 from vislam.errors import ConfigError, GroundTruthError, OutputError
 from vislam.tools.atomic import atomic_path, write_text_atomic
-from vislam.tools.trajectory_io import TrajectoryFile, read_trajectory
+from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, GT_FORMATS, GT_FRAMES, TrajectoryFile, read_trajectory
 
 __all__ = [
     "GT_FORMATS",
@@ -62,11 +62,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-GT_FORMATS = ("kitti", "tum")
-GT_FRAMES = ("imu", "cam")
-#: Largest time difference (s) of an associated estimate / ground-truth pair. Well below
-#: half the frame interval of KITTI (0.1 s), so that no pose can match two others.
-DEFAULT_MAX_DIFF_S = 0.02
 #: Ground-truth path length (m) between the poses of the distance-based RPE.
 RPE_DISTANCE_M = 100.0
 

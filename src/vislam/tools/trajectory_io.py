@@ -22,9 +22,22 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from vislam.errors import GroundTruthError
+
+#: Ground-truth formats and frames understood by the evaluation (vislam.tools.evaluation).
+GT_FORMATS = ("kitti", "tum")
+GT_FRAMES = ("imu", "cam")
+#: Largest time difference (s) of an associated estimate / ground-truth pair. Well below
+#: half the frame interval of KITTI (0.1 s), so that no pose can match two others.
+DEFAULT_MAX_DIFF_S = 0.02
+
+
+def _rotation():
+    """scipy's Rotation, imported on first use (keeps `import vislam` light)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
 from vislam.tools.atomic import write_text_atomic
 
 __all__ = [
@@ -78,7 +91,7 @@ def format_tum(timestamps_s, world_T_body) -> str:
         raise ValueError("one timestamp per pose is required")
     if not np.all(np.isfinite(ts)):
         raise ValueError("timestamps contain non-finite values")
-    quat_xyzw = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
+    quat_xyzw = _rotation().from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
     table = np.column_stack([ts, poses[:, :3, 3], quat_xyzw])
     return _format_rows(table)
 
@@ -237,7 +250,7 @@ def _tum_from_table(path: Path, table: np.ndarray, lines: np.ndarray) -> tuple[n
             "TUM timestamps must be strictly increasing"
         )
     poses = np.zeros((table.shape[0], 4, 4))
-    poses[:, :3, :3] = Rotation.from_quat(q / norms[:, None]).as_matrix()
+    poses[:, :3, :3] = _rotation().from_quat(q / norms[:, None]).as_matrix()
     poses[:, :3, 3] = table[:, 1:4]
     poses[:, 3, 3] = 1.0
     return ts, poses
