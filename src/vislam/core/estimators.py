@@ -227,10 +227,11 @@ class _PendingLandmarks:
         self.tau = tau
         self.tracks = tracks
         self.builder = builder
-        self.start = np.full(M, -1, dtype=np.int64)  # first frame of the waiting window
-        self.last = np.full(M, -2, dtype=np.int64)  # last frame seen while waiting
-        self.pixels = np.zeros((M, 4))
-        self.failures = np.zeros(M, dtype=np.int64)
+        m = M if self.n > 1 else 0  # no per-landmark memory when initializing at once
+        self.start = np.full(m, -1, dtype=np.int64)  # first frame of the waiting window
+        self.last = np.full(m, -2, dtype=np.int64)  # last frame seen while waiting
+        self.pixels = np.zeros((m, 4))
+        self.failures = np.zeros(m, dtype=np.int64)
 
     def admit(self, ids: np.ndarray, z: np.ndarray, t: int, imu_T_world: np.ndarray, means: np.ndarray,
               stats: RunStats):
@@ -394,8 +395,9 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
     last_correction = np.zeros(6)  # pose correction of the previous update (OC transition)
     pending = _PendingLandmarks(M, options, model, tau, tracks, builder)
     drift_gate = options.drift_threshold
-    drift_sum = np.zeros((M, 4))  # per landmark: Σ of whitened innovations and their count
-    drift_n = np.zeros(M)
+    m_drift = M if drift_gate < np.inf else 0
+    drift_sum = np.zeros((m_drift, 4))  # per landmark: Σ of whitened innovations and their count
+    drift_n = np.zeros(m_drift)
     error = None
     done = 0
 
@@ -477,8 +479,9 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                         if g_ids.size:
                             slam_initialize_landmarks(state, model, g_ids, g_z, V, N_pose, velocity_var)
                             tracks.started(g_ids, t)
-                            drift_sum[g_ids] = 0.0
-                            drift_n[g_ids] = 0
+                            if m_drift:
+                                drift_sum[g_ids] = 0.0
+                                drift_n[g_ids] = 0
                             stats.landmarks_initialized += int(g_ids.size)
                             stats.observations_used += int(g_ids.size)
                 if oc:
