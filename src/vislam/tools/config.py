@@ -51,7 +51,22 @@ _OFF_WORDS = ("none", "null", "off")
 
 
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads ``1e-3`` / ``5E+2`` (no dot) as floats."""
+    """SafeLoader that also reads ``1e-3`` / ``5E+2`` (no dot) as floats and refuses a
+    key given twice in one mapping (plain YAML silently keeps the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                duplicate = key in seen
+                seen.add(key)
+            except TypeError:  # unhashable key: let the base class report it
+                duplicate = False
+            if duplicate:
+                raise yaml.constructor.ConstructorError(None, None, f"option {key!r} is given twice",
+                                                        key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
 
 
 _Loader.add_implicit_resolver(
