@@ -164,17 +164,11 @@ def oc_project(Hp: np.ndarray, Hl: np.ndarray, N_pose: np.ndarray, N_lm: np.ndar
 
         H* = H − H N (Nᵀ N)⁻¹ Nᵀ
     """
-    k = Hp.shape[0]
-    d = Hl.shape[2]
-    N = np.empty((k, 6 + d, 6))
-    N[:, :6, :] = N_pose
-    N[:, 6:, :] = N_lm
-    H = np.concatenate([Hp, Hl], axis=2)  # (k, 4, 6 + d)
-    HN = H @ N  # (k, 4, 6)
-    NtN = np.swapaxes(N, 1, 2) @ N  # (k, 6, 6)
-    X = np.linalg.solve(NtN, np.swapaxes(N, 1, 2))  # (Nᵀ N)⁻¹ Nᵀ  (k, 6, 9)
-    Hs = H - HN @ X
-    return np.ascontiguousarray(Hs[:, :, :6]), np.ascontiguousarray(Hs[:, :, 6:])
+    N_lmT = np.swapaxes(N_lm, 1, 2)  # (k, 6, d)
+    HN = Hp @ N_pose + Hl @ N_lm  # H N  (k, 4, 6)
+    NtN = N_pose.T @ N_pose + N_lmT @ N_lm  # Nᵀ N  (k, 6, 6), symmetric
+    Z = np.swapaxes(np.linalg.solve(NtN, np.swapaxes(HN, 1, 2)), 1, 2)  # H N (Nᵀ N)⁻¹  (k, 4, 6)
+    return Hp - Z @ N_pose.T, Hl - Z @ N_lmT  # H* = H − H N (Nᵀ N)⁻¹ Nᵀ, split by blocks
 
 
 def _apply_correction(state: SlamState, dx: np.ndarray) -> None:
@@ -254,7 +248,7 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
     B = solve_triangular(L, PHt.T, lower=True, check_finite=False)  # B = L⁻¹ H Σ
     y = solve_triangular(L, r.reshape(-1), lower=True, check_finite=False)  # y = L⁻¹ r
     dx = B.T @ y  # δ = K r = Σ Hᵀ S⁻¹ r
-    P -= B.T @ B  # Σ ← Σ − K S Kᵀ
+    P -= B.T @ B  # Σ ← Σ − K S Kᵀ (a full GEMM beats SYRK + symmetrizing at these sizes)
     _apply_correction(state, dx)
     return dx[:POSE_DIM]
 
