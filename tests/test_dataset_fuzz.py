@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from vislam.cli.info import _json_safe
+from vislam.tools.jsonio import json_safe as _json_safe
 from vislam.core.lie import make_pose, so3_exp
 from vislam.core.sequence import Sequence
 from vislam.errors import DatasetError

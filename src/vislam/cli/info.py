@@ -6,14 +6,13 @@ only formats them (as text, or as JSON with ``--json``).
 
 from __future__ import annotations
 
-import json
-import math
 import os
 import sys
 
 import numpy as np
 
 from vislam.tools.dataset_io import load_dataset, summarize_sequence
+from vislam.tools.jsonio import dumps
 
 __all__ = ["register", "run", "format_summary"]
 
@@ -28,17 +27,6 @@ def register(subparsers) -> None:
     parser.add_argument("data", metavar="DATA", help="dataset file (.npz)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.set_defaults(func=run)
-
-
-def _json_safe(value):
-    """Replace non-finite floats by None so that the output is strict JSON."""
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def _num(value, fmt: str = ".3f") -> str:
@@ -115,7 +103,7 @@ def run(args) -> int:
         "features_fortran_order": dataset.features_fortran_order,
         **summarize_sequence(dataset.sequence),
     }
-    text = json.dumps(_json_safe(summary), indent=2, allow_nan=False) if args.json else format_summary(summary)
+    text = dumps(summary) if args.json else format_summary(summary)
     try:
         print(text, flush=True)
     except BrokenPipeError:  # e.g. `vislam info DATA | head`: the reader left, not an error of ours

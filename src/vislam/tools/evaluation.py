@@ -23,7 +23,6 @@ one-line message.
 from __future__ import annotations
 
 import copy
-import json
 import logging
 import math
 from dataclasses import dataclass, field
@@ -39,6 +38,7 @@ from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.metrics import KittiOdometryErrors, kitti_odometry_errors, trajectory_distances
 from vislam.errors import ConfigError, GroundTruthError, OutputError
 from vislam.tools.atomic import atomic_path, write_text_atomic
+from vislam.tools.jsonio import dumps
 from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, GT_FORMATS, GT_FRAMES, TrajectoryFile, read_trajectory
 
 __all__ = [
@@ -553,24 +553,9 @@ def evaluate_files(
 # ----------------------------------------------------------------------------- output
 
 
-def _json_safe(value):
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _json_safe(value.tolist())
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        value = float(value)
-        return value if math.isfinite(value) else None
-    return value
-
-
 def write_metrics_json(result: EvaluationResult, path) -> None:
     """Write ``result.to_dict()`` as strict JSON (NaN -> null), atomically."""
-    text = json.dumps(_json_safe(result.to_dict()), indent=2, allow_nan=False) + "\n"
+    text = dumps(result.to_dict()) + "\n"
     try:
         write_text_atomic(path, text)
     except OSError as exc:

@@ -31,9 +31,7 @@ the landmark files of an earlier mapping/SLAM run are removed by a localization 
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
-import math
 import os
 import shutil
 import signal
@@ -47,7 +45,8 @@ import numpy as np
 
 from vislam.core.results import LandmarkMap, RunResult
 from vislam.errors import OutputError
-from vislam.tools.atomic import write_bytes_atomic, write_text_atomic
+from vislam.tools.jsonio import json_safe, write_json  # noqa: F401 (re-exported)
+from vislam.tools.atomic import write_bytes_atomic
 from vislam.tools.npz import write_npz
 from vislam.tools.trajectory_io import write_kitti, write_tum
 
@@ -266,31 +265,6 @@ def write_landmarks_ply(path, landmarks: LandmarkMap, comments: Iterable[str] = 
 
 
 # ----------------------------------------------------------------------------- summary
-
-
-def json_safe(value):
-    """Plain JSON types; numpy scalars/arrays converted, non-finite floats -> None."""
-    if isinstance(value, Mapping):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return json_safe(value.tolist())
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        value = float(value)
-        return value if math.isfinite(value) else None
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def write_json(path, data: Mapping[str, Any]) -> None:
-    """Strict JSON (non-finite floats become null), atomically."""
-    write_text_atomic(path, json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n")
 
 
 def process_start_time() -> float | None:
