@@ -51,6 +51,7 @@ from vislam.core.updaters import (
     mapping_initialize,
     mapping_update,
     slam_initialize_landmarks,
+    conditional_residual_model,
     slam_predict_nis,
     slam_update,
     schmidt_update,
@@ -437,24 +438,27 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                 # ---- 2. update with the landmarks in the state
                 if np.any(live):
                     slots, lids = slot_arr[live], ids[live]
-                    r, Hp, Hl, in_front, nis, white = slam_predict_nis(state, model, slots, z[live], V, N_pose,
-                                                                      return_whitened=drift_gate < np.inf)
+                    r, Hp, Hl, in_front, nis, blocks = slam_predict_nis(state, model, slots, z[live], V, N_pose)
                     ok = in_front & (nis <= gate)
-                    if drift_gate < np.inf:
-                        # innovation drift test: for a static landmark the whitened
-                        # innovations w = L⁻¹ r are white, so Σ w / √k ~ N(0, I₄); a point on
-                        # a moving vehicle gives innovations of a consistent sign
-                        drift_sum[lids] += np.where(ok[:, None], white, 0.0)
+                    young = tracks.nobs[lids] <= options.probation_frames  # init counts as 1
+                    joint = ok & ~young
+                    if drift_gate < np.inf and np.any(ok):
+                        Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
+                    correction = update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
+                    if drift_gate < np.inf and np.any(ok):
+                        # innovation drift test: beyond the frame's consensus pose correction,
+                        # a static landmark's whitened residuals are white, so Σ w / √k ~
+                        # N(0, I₄); a point on a moving vehicle drifts one way
+                        w = np.linalg.solve(Lt, (r - Ht @ correction)[:, :, None])[:, :, 0]
+                        drift_sum[lids] += np.where(ok[:, None], w, 0.0)
                         drift_n[lids] += ok
                         stat = np.einsum("ki,ki->k", drift_sum[lids], drift_sum[lids]) / np.maximum(drift_n[lids], 1)
                         moving = ok & (drift_n[lids] >= 2) & (stat > drift_gate)
-                        ok &= ~moving
-                        stats.landmarks_moving += int(moving.sum())
-                        # rejected at once (below): it moves
-                        tracks.consecutive[lids[moving]] = max(options.max_consecutive_gated, 1) - 1
-                    young = tracks.nobs[lids] <= options.probation_frames  # init counts as 1
-                    joint = ok & ~young
-                    correction = update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
+                        if np.any(moving):
+                            stats.landmarks_moving += int(moving.sum())
+                            ok &= ~moving
+                            # rejected at once (below): it moves
+                            tracks.consecutive[lids[moving]] = max(options.max_consecutive_gated, 1) - 1
                     probe = ok & young
                     if np.any(probe):
                         # slots are unchanged by the joint update; re-linearize at the new pose

@@ -46,7 +46,8 @@ def _chi2_4_quantile(p: float | None) -> float:
     return float(chdtri(4, 1.0 - p))
 
 
-#: Options of the robust preset (``--robust``): for scenes with moving traffic.
+#: Options of the robust preset (``--robust``): for scenes with moving traffic — a
+#: more sensitive drift test and two frames of probation for new landmarks.
 ROBUST_PRESET = {"drift_test_probability": 0.9, "probation_frames": 2}
 
 
@@ -109,13 +110,14 @@ class FilterOptions:
     #: A landmark whose observations fail the gate this many frames in a row is removed
     #: from the state and kept in the map flagged as rejected (0 disables rejection).
     max_consecutive_gated: int = 3
-    #: Innovation drift test (probability, or None to disable): a static landmark's
-    #: whitened innovations are white, so their running sum over k updates divided by √k
-    #: is N(0, I₄); when its squared norm exceeds the chi-square(4) quantile the landmark
-    #: is taken for a point on a moving object and rejected. Catches vehicles whose motion
-    #: hides, frame by frame, inside the landmark's own uncertainty. Off by default: on
-    #: the KITTI files it also rejects good tracks (see the README's robustness section).
-    drift_test_probability: float | None = None
+    #: Innovation drift test (probability, or None to disable). After each update, what
+    #: a landmark's observation says beyond the frame's consensus pose correction is
+    #: whitened with its conditional covariance (updaters.conditional_residual_model);
+    #: for a static landmark these residuals are white, so their running sum over k
+    #: updates divided by √k is N(0, I₄). When its squared norm exceeds the chi-square(4)
+    #: quantile, the landmark is taken for a point on a moving object and rejected. It
+    #: catches vehicles whose motion hides, frame by frame, inside the gate.
+    drift_test_probability: float | None = 0.99
 
     # --- landmark motion model (the report's proposed fix for moving landmarks) --------
     #: Give every SLAM landmark a velocity with a constant-velocity prediction step, so

@@ -33,6 +33,7 @@ __all__ = [
     "initialization_guard",
     "oc_project",
     "slam_predict_nis",
+    "conditional_residual_model",
     "compress_stereo",
     "slam_update",
     "slam_update_reference",
@@ -117,7 +118,7 @@ def _gather_blocks(state: SlamState, slots: np.ndarray):
 
 
 def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
-                     N_pose: np.ndarray | None = None, return_whitened: bool = False):
+                     N_pose: np.ndarray | None = None):
     """Linearize every observation and compute its own innovation covariance and NIS.
 
     Per observation i (landmark slot s)::
@@ -125,9 +126,8 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
         S_i = H_p Σ_pp H_pᵀ + H_p Σ_ps H_lᵀ + H_l Σ_sp H_pᵀ + H_l Σ_ss H_lᵀ + V
         NIS_i = r_iᵀ S_i⁻¹ r_i,   r_i = z_i − ẑ_i
 
-    Returns (r, H_pose, H_lm, in_front, nis, w); NIS is +inf where the landmark is
-    behind the camera; w = L⁻¹ r (S = L Lᵀ), the whitened innovations, when
-    ``return_whitened`` (else None).
+    Returns (r, H_pose, H_lm, in_front, nis, blocks); NIS is +inf where the landmark
+    is behind the camera; blocks = (Σ_pp, Σ_ps, Σ_ss) of the prior.
     """
     z_hat, Hp, Hl, in_front = model.predict(state.imu_T_world, state.p_lm_in_world[slots])
     if state.lm_dim == 6:  # the observation does not depend on the velocity
@@ -142,13 +142,28 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
     nis = np.full(len(slots), np.inf)
     if np.any(in_front):
         nis[in_front] = innovation_nis(r[in_front], S[in_front])
-    w = None
-    if return_whitened:
-        w = np.zeros_like(r)
-        if np.any(in_front):
-            Lc = np.linalg.cholesky(S[in_front])
-            w[in_front] = np.linalg.solve(Lc, r[in_front][:, :, None])[:, :, 0]  # L⁻¹ r ~ N(0, I)
-    return r, Hp, Hl, in_front, nis, w
+    return r, Hp, Hl, in_front, nis, (P_pp, P_ps, P_ss)
+
+
+def conditional_residual_model(blocks, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray):
+    """How each observation depends on the pose correction, and what is left.
+
+    Conditioning the joint prior on the pose correction ε splits each landmark into
+    E[δm | ε] = Σ_sp Σ_pp⁻¹ ε and a remainder of covariance Σ_ss − Σ_sp Σ_pp⁻¹ Σ_ps::
+
+        r_i = H̃_i ε + e_i,   H̃_i = H_p + H_l Σ_sp Σ_pp⁻¹,
+        e_i ~ N(0, S̃_i),     S̃_i = H_l (Σ_ss − Σ_sp Σ_pp⁻¹ Σ_ps) H_lᵀ + V
+
+    Returns (H̃ (k, 4, 6), L̃ (k, 4, 4)) with S̃ = L̃ L̃ᵀ: after an update that corrected
+    the pose by ε, L̃⁻¹ (r − H̃ ε) is what the landmark's own observation says beyond the
+    consensus of the frame, whitened — N(0, I₄) for a static landmark.
+    """
+    P_pp, P_ps, P_ss = blocks
+    G = np.swapaxes(np.linalg.solve(P_pp + 1e-12 * np.eye(POSE_DIM), P_ps), 1, 2)  # Σ_sp Σ_pp⁻¹ (k, d, 6)
+    Ht = Hp + Hl @ G
+    C = P_ss - G @ P_ps  # Σ_ss − Σ_sp Σ_pp⁻¹ Σ_ps
+    St = Hl @ C @ np.swapaxes(Hl, 1, 2) + V
+    return Ht, np.linalg.cholesky(0.5 * (St + np.swapaxes(St, 1, 2)))
 
 
 def oc_project(Hp: np.ndarray, Hl: np.ndarray, N_pose: np.ndarray, N_lm: np.ndarray):
