@@ -205,7 +205,7 @@ class FilterOptions:
         if not isinstance(values, Mapping):
             raise ConfigError(f"{source}: expected a mapping of option names to values, got {type(values).__name__}")
         known = {f.name: f for f in fields(cls)}
-        unknown = sorted(str(k) for k in values if k not in known)
+        unknown = sorted(repr(k) for k in values if k not in known)  # repr: one line, even for odd keys
         if unknown:
             raise ConfigError(f"{source}: unknown option(s) {', '.join(unknown)}; known: {', '.join(known)}")
         clean = {}
