@@ -319,3 +319,14 @@ def test_demo_outputs_include_truth_and_ate(tmp_path, drive, results):
     assert ate["slam"] == pytest.approx(absolute_trajectory_error(slam.world_T_imu, drive.world_T_imu))
     assert ate["localization"] == pytest.approx(absolute_trajectory_error(loc.world_T_imu, drive.world_T_imu))
     assert ate["slam"] < ate["localization"]
+
+
+def test_ply_header_stays_ascii_with_non_ascii_labels(tmp_path):
+    from vislam.core.results import LandmarkMap
+    from vislam.tools.outputs import write_landmarks_ply
+
+    path = tmp_path / "lm.ply"
+    write_landmarks_ply(path, LandmarkMap.empty(), comments=["Dataset 27 — SLAM σ"])
+    header = path.read_bytes().split(b"end_header\n")[0]
+    header.decode("ascii")  # raises if not ASCII
+    assert b"Dataset 27 \\u2014 SLAM \\u03c3" in header

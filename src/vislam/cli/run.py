@@ -5,20 +5,34 @@ Options: defaults of :class:`~vislam.core.options.FilterOptions` < ``--config FI
 The estimator is :func:`vislam.core.estimators.run`; the files are written, all or
 nothing, by :func:`vislam.tools.outputs.write_run_outputs`. This module parses, calls
 and prints.
+
+Shared with ``vislam compare`` (one definition each): the filter options
+(:func:`add_filter_arguments`, :func:`options_from_args`), the noise injected into the
+data after loading (``--add-*``, :func:`add_noise_injection_arguments`,
+:func:`noise_spec_from_args` -> :class:`~vislam.core.noise.NoiseSpec`, recorded in
+summary.json under ``"injected_noise"``) and the evaluation against ground truth in the
+same run (``--gt``, :func:`add_ground_truth_arguments`, :func:`ground_truth_from_args`;
+metrics in summary.json under ``"evaluation"``, plus ``metrics.json`` and
+``error_over_distance.png``).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import re
 import sys
 import time
 from pathlib import Path
 
 from vislam.core.options import EKF_VARIANTS, MODES, ROBUST_PRESET
 from vislam.errors import ConfigError, EstimationError
+from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAMES
 
-__all__ = ["register", "run", "format_summary", "make_progress", "finish", "interrupted_message", "FLAG_FIELDS"]
+__all__ = ["register", "run", "format_summary", "format_evaluation_line", "make_progress", "finish",
+           "interrupted_message", "FLAG_FIELDS", "NOISE_FLAGS", "add_filter_arguments", "add_noise_injection_arguments",
+           "add_ground_truth_arguments", "options_from_args", "noise_spec_from_args", "ground_truth_from_args"]
 
 _COMMAND_START = time.time()
 
@@ -48,16 +62,31 @@ def register(subparsers) -> None:
         help="run IMU localization, landmark mapping or SLAM on a dataset",
         description="Run one of the report's estimators on a dataset (.npz) and write DIR/trajectory.tum, "
         "DIR/trajectory.kitti, DIR/trajectory.png, DIR/summary.json and, for mapping and SLAM, "
-        "DIR/landmarks.ply and DIR/landmarks.npz. Outputs appear all together or not at all. Options: "
-        "defaults < --config FILE < --robust < the other flags.",
+        "DIR/landmarks.ply and DIR/landmarks.npz (with --gt also DIR/metrics.json and "
+        "DIR/error_over_distance.png). Outputs appear all together or not at all. Options: "
+        "defaults < --config FILE < --robust < the other flags. The --add-* flags add noise to the data (seeded); "
+        "the filter's own noise model is set by --velocity-noise etc.",
     )
     parser.add_argument("data", metavar="DATA", help="dataset file (.npz)")
     parser.add_argument("--mode", choices=MODES, default="slam",
                         help="localization (IMU only), mapping (landmarks from known poses) or slam (default: slam)")
     parser.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")
+    add_filter_arguments(parser)
+    add_noise_injection_arguments(parser)
+    add_ground_truth_arguments(parser)
+    parser.add_argument("--poses", metavar="FILE",
+                        help="mapping only: known world_T_imu poses, TUM or KITTI, one per frame (default: the "
+                        "localization trajectory)")
+    parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    parser.set_defaults(func=run)
+
+
+def add_filter_arguments(parser) -> None:
+    """``--config``, ``--robust`` and the filter's own options (shared by run and compare)."""
     parser.add_argument("--config", metavar="FILE",
                         help="filter options file (.yaml/.yml/.toml): a mapping of FilterOptions field names")
-    noise = parser.add_argument_group("filter options (override --config)")
+    noise = parser.add_argument_group("filter options", "The filter's own noise model and options (they override "
+                                      "--config); not the noise of the data.")
     noise.add_argument("--velocity-noise", type=float, metavar="MPS",
                        help="1-sigma error of one linear-velocity sample per axis, m/s (default 0.02; the dense "
                        "datasets need about 0.5)")
@@ -75,11 +104,95 @@ def register(subparsers) -> None:
     noise.add_argument("--robust", action="store_true",
                        help="preset for scenes with moving traffic: "
                        + ", ".join(f"{k}={v}" for k, v in ROBUST_PRESET.items()))
-    parser.add_argument("--poses", metavar="FILE",
-                        help="mapping only: known world_T_imu poses, TUM or KITTI, one per frame (default: the "
-                        "localization trajectory)")
-    parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
-    parser.set_defaults(func=run)
+
+def add_noise_injection_arguments(parser) -> None:
+    """The ``--add-*`` flags: noise injected into the data after loading (shared by run and compare)."""
+    group = parser.add_argument_group(
+        "noise injection", "The report's 'artificially increased noise': added to the data after loading, seeded, "
+        "recorded in summary.json under \"injected_noise\". The filter's noise model is a separate setting "
+        "(--velocity-noise etc.).")
+    group.add_argument("--add-velocity-noise", type=float, metavar="MPS",
+                       help="add white Gaussian noise to every linear-velocity sample, 1-sigma per axis, m/s")
+    group.add_argument("--add-angular-noise", type=float, metavar="RADPS",
+                       help="add white Gaussian noise to every angular-velocity sample, 1-sigma per axis, rad/s")
+    group.add_argument("--add-velocity-bias", metavar="X,Y,Z",
+                       help="add a constant bias to every linear-velocity sample, m/s in the IMU frame")
+    group.add_argument("--add-angular-bias", metavar="X,Y,Z",
+                       help="add a constant bias to every angular-velocity sample, rad/s in the IMU frame")
+    group.add_argument("--add-pixel-noise", type=float, metavar="PX",
+                       help="add white Gaussian noise to every pixel coordinate of every observation, 1-sigma, px")
+    group.add_argument("--add-outliers", type=float, metavar="FRACTION",
+                       help="replace this share of the observations, in [0, 1), by gross outliers")
+    group.add_argument("--noise-seed", type=int, metavar="N", help="seed of the injected noise (default 0)")
+
+
+def add_ground_truth_arguments(parser) -> None:
+    """``--gt``, ``--gt-format``, ``--gt-frame``: evaluate in the same run (shared by run and compare)."""
+    group = parser.add_argument_group(
+        "evaluation against ground truth", "Evaluate in the same run: writes metrics.json and "
+        "error_over_distance.png next to the other outputs and the metrics into summary.json under \"evaluation\".")
+    group.add_argument("--gt", metavar="FILE", help="ground-truth trajectory file")
+    group.add_argument("--gt-format", choices=GT_FORMATS, default="kitti",
+                       help="kitti: line i = frame i; tum: timestamped, matched by time (default: kitti)")
+    group.add_argument("--gt-frame", choices=GT_FRAMES, default="imu",
+                       help="body frame of the ground-truth poses: imu, or cam for left-camera poses (converted with "
+                       "the dataset's cam_T_imu). The shared KITTI ground truth (groundtruth/*.txt) holds "
+                       "left-camera poses: give it with --gt-frame cam (default: imu)")
+
+
+#: argparse dest of the noise-injection flags -> (NoiseSpec field, flag)
+NOISE_FLAGS = {
+    "add_velocity_noise": ("velocity_noise_mps", "--add-velocity-noise"),
+    "add_angular_noise": ("angular_noise_radps", "--add-angular-noise"),
+    "add_velocity_bias": ("velocity_bias_mps", "--add-velocity-bias"),
+    "add_angular_bias": ("angular_bias_radps", "--add-angular-bias"),
+    "add_pixel_noise": ("pixel_noise_px", "--add-pixel-noise"),
+    "add_outliers": ("outlier_fraction", "--add-outliers"),
+    "noise_seed": ("seed", "--noise-seed"),
+}
+
+
+def _vector3(text: str, flag: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(p) for p in str(text).split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"{flag}: expected three finite numbers X,Y,Z (e.g. 0.1,0,0), got {text!r}")
+    return values
+
+
+def noise_spec_from_args(args):
+    """The :class:`~vislam.core.noise.NoiseSpec` of the ``--add-*`` flags, or None when
+    none is given (``--noise-seed`` alone adds nothing). A ConfigError names the flag."""
+    from vislam.core.noise import NoiseSpec
+
+    given = {dest: getattr(args, dest, None) for dest in NOISE_FLAGS}
+    if all(value is None for dest, value in given.items() if dest != "noise_seed"):
+        return None
+    values = {}
+    for dest, value in given.items():
+        if value is not None:
+            field, flag = NOISE_FLAGS[dest]
+            values[field] = _vector3(value, flag) if dest.endswith("_bias") else value
+    try:
+        return NoiseSpec(**values)
+    except ConfigError as exc:
+        message = str(exc)
+        for field, flag in NOISE_FLAGS.values():
+            message = re.sub(rf"\b{re.escape(field)}\b", flag, message)
+        raise ConfigError(message) from None
+
+
+def ground_truth_from_args(args, sequence):
+    """``(TrajectoryFile, info)`` of ``--gt`` checked against ``sequence``, or ``(None, None)``."""
+    if not getattr(args, "gt", None):
+        return None, None
+    from vislam.tools.comparison import load_run_ground_truth
+
+    gt = load_run_ground_truth(args.gt, sequence, args.gt_format, args.gt_frame)
+    info = {"path": str(Path(args.gt).resolve()), "format": args.gt_format, "frame": args.gt_frame}
+    return gt, info
 
 
 def options_from_args(args):
@@ -142,8 +255,22 @@ def format_summary(s: dict, out_dir) -> str:
 
         lines.append(f"ATE:           SLAM {m(ate['slam'])}, localization {m(ate['localization'])} "
                      "(SE(3)-aligned RMSE vs ground truth)")
+    ev = s.get("evaluation")
+    if ev:
+        lines.append(format_evaluation_line(ev))
     lines.append(f"outputs:       {out_dir}/ ({', '.join(s['outputs'])})")
     return "\n".join(lines)
+
+
+def format_evaluation_line(ev: dict) -> str:
+    """The ATE line of a summary's "evaluation" entry."""
+
+    def num(x, spec, unit=""):
+        return "n/a" if x is None or not math.isfinite(x) else f"{x:{spec}}{unit}"
+
+    return (f"ATE:           {num(ev.get('ape_rmse_m'), '.3f', ' m')} (SE(3)-aligned RMSE vs ground truth, "
+            f"{ev.get('n_frames_compared')} frames); KITTI {num(ev.get('kitti_t_pct'), '.2f', ' %')}, "
+            f"{num(ev.get('kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}")
 
 
 def _print(text: str) -> None:
@@ -161,6 +288,7 @@ def interrupted_message(command: str, stage) -> str:
 
 def run(args) -> int:
     from vislam.core.estimators import run as run_estimator
+    from vislam.tools.comparison import evaluate_run, injected_noise_record, stage_evaluation
     from vislam.tools.config import load_known_poses
     from vislam.tools.dataset_io import load_sequence
     from vislam.tools.outputs import OutputStage, process_start_time, write_run_outputs
@@ -169,13 +297,24 @@ def run(args) -> int:
     if args.poses and args.mode != "mapping":
         raise ConfigError(f"--poses is only used by --mode mapping (got --mode {args.mode})")
     options = options_from_args(args)
+    noise = noise_spec_from_args(args)
     data = Path(args.data)
     sequence = load_sequence(data)
     poses = load_known_poses(args.poses, sequence) if args.poses else None
+    gt, gt_info = ground_truth_from_args(args, sequence)
     dataset = {"name": sequence.name, "path": str(data.resolve()), "frames": sequence.n_frames,
                "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s}
     if args.mode == "mapping":
         dataset["poses"] = str(Path(args.poses).resolve()) if args.poses else "localization"
+    extra = {}
+    if noise is not None:
+        from vislam.core.noise import inject_noise
+        from vislam.tools.comparison import describe_noise
+
+        sequence, info = inject_noise(sequence, noise)
+        # ASCII: the label also goes into the PLY header
+        dataset["label"] = f"{sequence.name} + noise ({describe_noise(noise, seed=False, ascii=True)})"
+        extra["injected_noise"] = injected_noise_record(noise, info)
 
     stage = OutputStage(args.out)
     progress, close = None, lambda: None
@@ -186,8 +325,12 @@ def run(args) -> int:
                 result = run_estimator(sequence, args.mode, options, progress=progress, world_T_imu=poses)
             finally:
                 close()
+            if gt is not None:
+                name = dataset.get("label") or sequence.name
+                extra["evaluation"] = stage_evaluation(stage.staging, evaluate_run(result, gt, sequence),
+                                                       f"{name} ({args.mode}) vs ground truth", ground_truth=gt_info)
             summary = write_run_outputs(stage, result, dataset=dataset, duration_s=sequence.duration_s,
-                                        start_time=start_time)
+                                        start_time=start_time, extra=extra)
     except KeyboardInterrupt:
         close()
         print(interrupted_message("run", stage), file=sys.stderr)

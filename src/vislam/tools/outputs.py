@@ -162,10 +162,18 @@ class OutputStage:
             return []
         return sorted(p.name for p in self.staging.iterdir() if not p.name.startswith("."))
 
-    def commit(self, order: Iterable[str] = (), remove_stale: Iterable[str] = _MODE_FILES) -> list[Path]:
+    def commit(self, order: Iterable[str] = (), remove_stale: Iterable[str] = _MODE_FILES,
+               replace_directories: bool = False) -> list[Path]:
         """Rename the staged files onto their final names (``order`` first, the rest
         after, alphabetically) and delete older copies of ``remove_stale`` files this run
-        did not produce. Ctrl-C is held back until the renames are done."""
+        did not produce. Ctrl-C is held back until the renames are done.
+
+        With ``replace_directories``, staged entries may be directories: an existing
+        directory of the same name is moved into the staging area first (and deleted with
+        it), so it is replaced as a whole; on failure it is moved back.
+        """
+        if replace_directories:
+            return self._commit_replacing_directories(order)
         names = self.staged()
         ordered = [n for n in order if n in names] + [n for n in names if n not in order]
         final: list[Path] = []
@@ -185,6 +193,31 @@ class OutputStage:
             self.files = final
             self._cleanup()
         return final
+
+    def _commit_replacing_directories(self, order: Iterable[str]) -> list[Path]:
+        """See :meth:`commit` (``replace_directories``)."""
+        out = self.out_dir
+        moved: list[tuple[Path, Path]] = []
+        with _sigint_deferred():
+            try:
+                for name in self.staged():
+                    target = out / name
+                    if self.path(name).is_dir() and (target.exists() or target.is_symlink()):
+                        if not target.is_dir() or target.is_symlink():
+                            raise OutputError(f"{target}: exists and is not a directory; cannot replace it with the "
+                                              f"output directory {name}/")
+                        aside = self.path(f".replaced-{name}")
+                        os.replace(target, aside)
+                        moved.append((aside, target))
+                return self.commit(order=order, remove_stale=())
+            except (OSError, OutputError) as exc:
+                for aside, target in reversed(moved):
+                    with contextlib.suppress(OSError):
+                        if not target.exists():
+                            os.replace(aside, target)
+                if isinstance(exc, OutputError):
+                    raise
+                raise OutputError(f"{out}: cannot move the outputs into place: {exc.strerror or exc}") from None
 
     def _cleanup(self) -> None:
         if self.staging is not None:
@@ -254,7 +287,10 @@ def write_landmarks_ply(path, landmarks: LandmarkMap, comments: Iterable[str] = 
     with np.errstate(invalid="ignore"):
         v["sigma"] = np.sqrt(trace)
     header = ["ply", "format binary_little_endian 1.0"]
-    header += [f"comment {' '.join(str(c).split())}" for c in comments]
+    # PLY headers are ASCII: other characters of a comment (a dataset name, a label)
+    # are written as \uXXXX escapes rather than failing the whole run
+    header += ["comment " + " ".join(str(c).split()).encode("ascii", "backslashreplace").decode("ascii")
+               for c in comments]
     header += ["comment world frame = first IMU pose (x forward, y left, z up), metres",
                "comment status: 0 ok, 1 rejected; sigma: sqrt(trace of the position covariance) in m",
                f"element vertex {n}"]

@@ -7,6 +7,10 @@ as small translucent dots (rejected landmarks as red crosses). The view is the e
 of the trajectories plus a margin, so that a few far landmarks do not shrink the drive
 to a dot; the legend says how many landmarks fall outside it.
 
+:func:`plot_comparison_map` draws several estimates on one figure (the report's Figs
+7–11): each :class:`MapLayer` is a trajectory with, optionally, its landmarks as small
+dots in the same colour, over an optional ground truth.
+
 Figures are drawn with matplotlib's object API on the Agg canvas (no pyplot state, no
 window) and saved atomically (:func:`vislam.tools.atomic.atomic_path`).
 """
@@ -21,9 +25,12 @@ import numpy as np
 
 from vislam.tools.atomic import atomic_path
 
-__all__ = ["TrajectoryCurve", "plot_trajectory_map", "view_limits", "FIGSIZE_IN", "DPI"]
+__all__ = ["TrajectoryCurve", "MapLayer", "plot_trajectory_map", "plot_comparison_map", "plot_grouped_bars",
+           "view_limits", "FIGSIZE_IN", "DPI"]
 
 FIGSIZE_IN = (8.0, 8.0)
+#: Size of :func:`plot_comparison_map`'s figure (legend below the axes).
+COMPARISON_FIGSIZE_IN = (8.0, 9.0)
 DPI = 120
 #: Margin around the trajectories' extent: this share of the larger side, at least MIN_MARGIN_M.
 MARGIN_FRACTION = 0.08
@@ -59,6 +66,42 @@ def _outside(xy: np.ndarray, xlim, ylim) -> np.ndarray:
     finite = np.all(np.isfinite(xy), axis=1)
     inside = (xy[:, 0] >= xlim[0]) & (xy[:, 0] <= xlim[1]) & (xy[:, 1] >= ylim[0]) & (xy[:, 1] <= ylim[1])
     return ~(finite & inside)
+
+
+def _label_map_axes(fig, ax, title: str, subtitle: str | None) -> None:
+    """Axis labels in metres, grid, and the title (with the subtitle under it, smaller)."""
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.grid(True, lw=0.4, alpha=0.5)
+    ax.set_axisbelow(True)
+    if subtitle:
+        ax.set_title(subtitle, fontsize=9, color="0.3")
+        fig.suptitle(title, fontsize=13)
+    else:
+        ax.set_title(title, fontsize=13)
+
+
+def _fit_equal_aspect(fig, ax, limits) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Set the view ``limits`` (x0, x1, y0, y1), widened on the shorter side so that the
+    equal-aspect data box fills the axes box laid out by tight_layout; returns (xlim, ylim)."""
+    x0, x1, y0, y1 = limits
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    fig.tight_layout()
+    box = ax.get_position()
+    fig_w, fig_h = fig.get_size_inches()
+    box_ratio = (box.width * fig_w) / (box.height * fig_h)
+    w, h = x1 - x0, y1 - y0
+    if w / h < box_ratio:
+        grow = (h * box_ratio - w) / 2
+        x0, x1 = x0 - grow, x1 + grow
+    else:
+        grow = (w / box_ratio - h) / 2
+        y0, y1 = y0 - grow, y1 + grow
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal", adjustable="box")
+    return (x0, x1), (y0, y1)
 
 
 def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, title: str = "",
@@ -114,35 +157,9 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
         curve_handles.append(Line2D([], [], ls="none", marker="s", ms=7, mfc="black", mec="black", label="end"))
     handles = curve_handles + handles
 
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.grid(True, lw=0.4, alpha=0.5)
-    ax.set_axisbelow(True)
-    if subtitle:
-        ax.set_title(subtitle, fontsize=9, color="0.3")
-        fig.suptitle(title, fontsize=13)
-    else:
-        ax.set_title(title, fontsize=13)
+    _label_map_axes(fig, ax, title, subtitle)
 
-    # View: the trajectories' extent plus a margin, widened on the shorter side so that
-    # the equal-aspect data box fills the axes box laid out by tight_layout.
-    x0, x1, y0, y1 = view_limits(np.concatenate(traj_xy) if traj_xy else np.zeros((0, 2)))
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(y0, y1)
-    fig.tight_layout()
-    box = ax.get_position()
-    box_ratio = (box.width * FIGSIZE_IN[0]) / (box.height * FIGSIZE_IN[1])
-    w, h = x1 - x0, y1 - y0
-    if w / h < box_ratio:
-        grow = (h * box_ratio - w) / 2
-        x0, x1 = x0 - grow, x1 + grow
-    else:
-        grow = (w / box_ratio - h) / 2
-        y0, y1 = y0 - grow, y1 + grow
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(y0, y1)
-    ax.set_aspect("equal", adjustable="box")
-    xlim, ylim = (x0, x1), (y0, y1)
+    xlim, ylim = _fit_equal_aspect(fig, ax, view_limits(np.concatenate(traj_xy) if traj_xy else np.zeros((0, 2))))
 
     n_outside = int(_outside(p, xlim, ylim).sum()) if p.size else 0
     if n_outside:
@@ -153,3 +170,173 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
     with atomic_path(Path(path), suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=DPI)
     return {"xlim": tuple(map(float, xlim)), "ylim": tuple(map(float, ylim)), "landmarks_outside_view": n_outside}
+
+
+@dataclass(frozen=True)
+class MapLayer:
+    """One estimate of :func:`plot_comparison_map`: its (T, 4, 4) world_T_imu poses, its
+    landmarks (a LandmarkMap or None; rejected ones are not drawn) and its style."""
+
+    world_T_imu: np.ndarray
+    label: str
+    color: str
+    landmarks: object = None
+    linestyle: str = "-"
+    linewidth: float = 1.6
+    #: Short name in the landmarks' legend entry (default: ``label``).
+    short: str | None = None
+
+
+def _span(xy: np.ndarray) -> float:
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    return float(np.max(np.ptp(xy, axis=0))) if xy.shape[0] else 0.0
+
+
+def _inside(xy: np.ndarray, limits) -> bool:
+    x0, x1, y0, y1 = limits
+    return bool(np.all(np.isfinite(xy)) and np.all((xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0)
+                                                     & (xy[:, 1] <= y1)))
+
+
+def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str | None = None,
+                        ground_truth: np.ndarray | None = None, ground_truth_label: str = "ground truth") -> dict:
+    """Several estimates in the xy plane on one figure: each layer's trajectory and its
+    landmarks (small dots, same colour), the ground truth (``(T, 4, 4)`` world_T_imu, grey)
+    when given; start marked once, each end with a square of its colour. Saved as a PNG
+    (8x9 in, 120 dpi) at ``path``, atomically.
+
+    View: the ground truth's extent (without it, the union of the layers, leaving out a
+    trajectory more than 10 times larger than the smallest: a diverged run) plus a margin,
+    extended to every trajectory that stays within half a span of it. A trajectory that
+    leaves the view says so in the legend, as do landmarks outside it.
+
+    Returns ``{"xlim", "ylim", "landmarks_outside_view", "layers_leaving_view"}``.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    fig = Figure(figsize=COMPARISON_FIGSIZE_IN, dpi=DPI)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    layer_xy = [np.asarray(layer.world_T_imu, dtype=np.float64).reshape(-1, 4, 4)[:, :2, 3] for layer in layers]
+    gt_xy = None if ground_truth is None else np.asarray(ground_truth, dtype=np.float64).reshape(-1, 4, 4)[:, :2, 3]
+
+    # --- the view
+    if gt_xy is not None and gt_xy.shape[0]:
+        base = [gt_xy]
+    else:
+        spans = [_span(xy) for xy in layer_xy if xy.shape[0]]
+        smallest = max(min(spans), 2 * MIN_MARGIN_M) if spans else 0.0
+        base = [xy for xy in layer_xy if xy.shape[0] and _span(xy) <= 10 * smallest]
+    limits = view_limits(np.concatenate(base) if base else np.zeros((0, 2)))
+    half = 0.5 * max(limits[1] - limits[0], limits[3] - limits[2])
+    window = (limits[0] - half, limits[1] + half, limits[2] - half, limits[3] + half)
+    fits = [xy.shape[0] > 0 and _inside(xy, window) for xy in layer_xy]
+    limits = view_limits(np.concatenate(base + [xy for xy, ok in zip(layer_xy, fits) if ok]) if base or any(fits)
+                         else np.zeros((0, 2)))
+
+    # --- landmarks (under the trajectories)
+    handles: list = []
+    lm_handles: list = []
+    all_lm = []
+    n_lm_total = sum(len(layer.landmarks) for layer in layers if layer.landmarks is not None)
+    size = 10.0 if n_lm_total <= 600 else 5.0 if n_lm_total <= 3000 else 2.0
+    for layer in layers:
+        lm = layer.landmarks
+        if lm is None:
+            continue
+        ok = np.asarray(lm.status) == 0
+        p = np.asarray(lm.p_lm_in_world, dtype=np.float64).reshape(-1, 3)[ok, :2]
+        all_lm.append(p)
+        ax.scatter(p[:, 0], p[:, 1], s=size, c=layer.color, alpha=0.45, linewidths=0, rasterized=True, zorder=1)
+        n_rej = int((~ok).sum())
+        text = f"{layer.short or layer.label}: {int(ok.sum())} landmarks" + (
+            f" ({n_rej} rejected, not shown)" if n_rej else "")
+        lm_handles.append(Line2D([], [], ls="none", marker="o", ms=4, color=layer.color, alpha=0.7, label=text))
+
+    # --- trajectories
+    if gt_xy is not None and gt_xy.shape[0]:
+        (line,) = ax.plot(gt_xy[:, 0], gt_xy[:, 1], color="0.2", lw=3.0, alpha=0.45, zorder=2,
+                          label=ground_truth_label)
+        handles.append(line)
+    leaving = []
+    for layer, xy, ok in zip(layers, layer_xy, fits):
+        if xy.shape[0] == 0:
+            continue
+        label = layer.label + ("" if ok else " (leaves the view)")
+        if not ok:
+            leaving.append(layer.label)
+        (line,) = ax.plot(xy[:, 0], xy[:, 1], color=layer.color, ls=layer.linestyle, lw=layer.linewidth, zorder=3,
+                          label=label)
+        handles.append(line)
+        ax.plot(*xy[-1], marker="s", ms=7, mfc=layer.color, mec="black", mew=0.8, ls="none", zorder=5)
+    starts = [xy[0] for xy in ([gt_xy] if gt_xy is not None else []) + layer_xy if xy is not None and xy.shape[0]]
+    if starts:
+        ax.plot(*starts[0], marker="o", ms=9, mfc="white", mec="black", mew=1.8, ls="none", zorder=6)
+        handles.append(Line2D([], [], ls="none", marker="o", ms=8, mfc="white", mec="black", mew=1.8, label="start"))
+        handles.append(Line2D([], [], ls="none", marker="s", ms=7, mfc="0.7", mec="black", mew=0.8,
+                              label="end (colour of its trajectory)"))
+    handles += lm_handles
+
+    _label_map_axes(fig, ax, title, subtitle)
+    # The legend goes below the axes (several estimates and landmark sets would hide part
+    # of the drive); it is laid out before the view is fitted, with the count of landmarks
+    # outside the view updated afterwards (the fitted view only grows).
+    p = np.concatenate(all_lm) if all_lm else np.zeros((0, 2))
+
+    def outside_text(xlim, ylim) -> str | None:
+        n = int(_outside(p, xlim, ylim).sum()) if p.size else 0
+        return f"{n} landmark{'s' if n != 1 else ''} outside the view" if n else None
+
+    first = outside_text(limits[:2], limits[2:])
+    if first:
+        handles.append(Line2D([], [], ls="none", label=first))
+    legend = ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=2, fontsize=8.5,
+                       frameon=False) if handles else None
+    xlim, ylim = _fit_equal_aspect(fig, ax, limits)
+    final = outside_text(xlim, ylim)
+    n_outside = int(_outside(p, xlim, ylim).sum()) if p.size else 0
+    if first and legend is not None:
+        legend.get_texts()[-1].set_text(final or "no landmark outside the view")
+    with atomic_path(Path(path), suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI)
+    return {"xlim": tuple(map(float, xlim)), "ylim": tuple(map(float, ylim)), "landmarks_outside_view": n_outside,
+            "layers_leaving_view": leaving}
+
+
+def plot_grouped_bars(path, panels, series, ylabel: str, title: str) -> None:
+    """Grouped bar chart, one panel (row) per entry of ``panels``: ``(panel_title,
+    group_labels, {series_key: [value or None per group]})``; ``series`` is a list of
+    ``(key, legend label, colour)``. Each bar is labelled with its value ("n/a" for None).
+    Saved as a PNG at ``path`` (9 in wide, 3.6 in per panel, 120 dpi), atomically."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    n = len(panels)
+    fig = Figure(figsize=(9.0, 1.0 + 3.4 * n), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(n, 1, squeeze=False)[:, 0]
+    fig.suptitle(title, fontsize=13)
+    width = 0.8 / max(len(series), 1)
+    for ax, (panel_title, groups, values) in zip(axes, panels):
+        x = np.arange(len(groups))
+        top = max([v for key, _, _ in series for v in values.get(key, []) if v is not None and np.isfinite(v)],
+                  default=1.0)
+        for i, (key, label, color) in enumerate(series):
+            vals = values.get(key, [None] * len(groups))
+            pos = x - 0.4 + width * (i + 0.5)
+            heights = [v if v is not None and np.isfinite(v) else 0.0 for v in vals]
+            bars = ax.bar(pos, heights, width * 0.92, color=color, label=label, zorder=2)
+            for b, v in zip(bars, vals):
+                text = "n/a" if v is None or not np.isfinite(v) else f"{v:.2f}"
+                ax.text(b.get_x() + b.get_width() / 2, b.get_height() + 0.015 * top, text, ha="center",
+                        va="bottom", fontsize=8)
+        ax.set_xticks(x, groups, fontsize=8.5)
+        ax.set_ylabel(ylabel)
+        ax.set_ylim(0, top * 1.18)
+        ax.set_title(panel_title, fontsize=10.5)
+        ax.grid(True, axis="y", lw=0.4, alpha=0.5, zorder=0)
+        ax.legend(loc="upper left", fontsize=8.5, framealpha=0.9)
+    with atomic_path(Path(path), suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI)

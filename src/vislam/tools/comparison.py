@@ -1,0 +1,390 @@
+"""Comparing estimators on the same data: the report's Part A ("separately") against SLAM.
+
+* :func:`run_comparison` injects the requested noise (:func:`vislam.core.noise.inject_noise`)
+  once, runs IMU localization + landmark mapping on the localization trajectory
+  ("separately", the report's Figs 1–3) and SLAM (Figs 4–6) on the same noisy sequence,
+  evaluates both against a ground truth when one is given, and returns a
+  :class:`Comparison` — no I/O.
+* :func:`write_comparison` writes a comparison into a directory: ``separate/`` and
+  ``slam/`` (the files of ``vislam run``, plus ``metrics.json`` and
+  ``error_over_distance.png`` with a ground truth), ``comparison.png`` (both trajectories
+  and both landmark sets on one xy figure, the report's Figs 7–9) and ``comparison.json``.
+* Ground truth of a run: :func:`load_run_ground_truth` (checked against the dataset
+  before any work), :func:`evaluate_run`, :func:`stage_evaluation` (``metrics.json``,
+  ``error_over_distance.png``) and :func:`evaluation_summary` (the compact dict stored
+  under ``"evaluation"`` in summary.json).
+* :meth:`vislam.tools.outputs.OutputStage.commit` with ``replace_directories`` commits a stage
+  whose staged entries include directories (``separate/``, ``slam/``, ``runs/``):
+  existing directories of the same name are replaced as a whole, so the output directory
+  holds one command's outputs, all of them or (on failure or Ctrl-C) the previous ones.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from vislam.core.estimators import run as run_estimator
+from vislam.core.noise import NoiseSpec, inject_noise
+from vislam.core.options import FilterOptions
+from vislam.core.results import RunResult
+from vislam.core.sequence import Sequence
+from vislam.tools.evaluation import EvaluationResult, associate, evaluate, load_ground_truth, \
+    plot_error_over_distance, write_metrics_json
+from vislam.tools.jsonio import write_json
+from vislam.tools.outputs import OutputStage, write_run_outputs
+from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, TrajectoryFile
+
+__all__ = [
+    "METHODS",
+    "METHOD_LABELS",
+    "METHOD_COLORS",
+    "METRICS_FILE",
+    "ERROR_FIGURE_FILE",
+    "COMPARISON_FIGURE",
+    "COMPARISON_JSON",
+    "MethodResult",
+    "Comparison",
+    "load_run_ground_truth",
+    "evaluate_run",
+    "evaluation_summary",
+    "stage_evaluation",
+    "describe_noise",
+    "injected_noise_record",
+    "run_comparison",
+    "write_comparison",
+]
+
+logger = logging.getLogger(__name__)
+
+#: The two methods compared, in drawing order, and how figures and tables name them.
+METHODS = ("separate", "slam")
+METHOD_LABELS = {"separate": "localization + mapping (separately)", "slam": "visual-inertial SLAM"}
+METHOD_SHORT = {"separate": "separately", "slam": "SLAM"}
+METHOD_COLORS = {"separate": "tab:orange", "slam": "tab:blue"}
+#: Estimator mode of each method: "separately" is a mapping run on the localization poses.
+METHOD_MODES = {"separate": "mapping", "slam": "slam"}
+
+METRICS_FILE = "metrics.json"
+ERROR_FIGURE_FILE = "error_over_distance.png"
+COMPARISON_FIGURE = "comparison.png"
+COMPARISON_JSON = "comparison.json"
+
+#: Metrics copied from :meth:`EvaluationResult.to_dict` into summary.json's "evaluation".
+SUMMARY_METRICS = (
+    "n_frames_compared", "path_length_m",
+    "ape_rmse_m", "ape_mean_m", "ape_median_m", "ape_max_m", "ape_unaligned_rmse_m",
+    "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "rpe_trans_100m_rmse_m", "rpe_rot_100m_rmse_deg",
+    "kitti_t_pct", "kitti_r_deg_per_100m", "kitti_segments",
+)
+
+
+# ----------------------------------------------------------------------------- ground truth
+
+
+def load_run_ground_truth(path, sequence: Sequence, fmt: str = "kitti", frame: str = "imu",
+                          max_diff_s: float = DEFAULT_MAX_DIFF_S) -> TrajectoryFile:
+    """Read the ground truth of ``sequence`` as world_T_imu and check that it matches the
+    dataset's frames (at least 2 pairs), so a wrong file fails before any work.
+
+    Raises GroundTruthError / ConfigError with a one-line message naming the file.
+    """
+    gt = load_ground_truth(path, fmt, frame, sequence.cam_T_imu)
+    probe = TrajectoryFile(np.broadcast_to(np.eye(4), (sequence.n_frames, 4, 4)).copy(), sequence.timestamps_s.copy(),
+                           "tum", f"{sequence.source or sequence.name} (frame times)")
+    associate(probe, gt, sequence.timestamps_s, max_diff_s)
+    return gt
+
+
+def evaluate_run(result: RunResult, ground_truth: TrajectoryFile, sequence: Sequence,
+                 max_diff_s: float = DEFAULT_MAX_DIFF_S) -> EvaluationResult:
+    """Errors of a run's trajectory (the frames it processed) against ``ground_truth``."""
+    est = TrajectoryFile(np.asarray(result.world_T_imu), np.asarray(result.timestamps_s), "tum",
+                         f"{result.mode} estimate of {sequence.name}")
+    assoc = associate(est, ground_truth, sequence.timestamps_s, max_diff_s)
+    info = {
+        "estimate": f"{result.mode} run",
+        "ground_truth": str(ground_truth.path),
+        "ground_truth_format": ground_truth.fmt,
+        "dataset": sequence.source or sequence.name,
+        "association": assoc.to_dict(),
+    }
+    return evaluate(assoc.est_world_T_imu, assoc.gt_world_T_imu, assoc.timestamps_s, info=info)
+
+
+def evaluation_summary(evaluation: EvaluationResult, **extra) -> dict[str, Any]:
+    """The compact dict stored under ``"evaluation"`` in summary.json: the headline
+    metrics (``ape_rmse_m``, ``kitti_t_pct``, ``kitti_r_deg_per_100m``, RPE …), the
+    notes, the association and ``extra`` (e.g. the ground-truth file and frame)."""
+    full = evaluation.to_dict()
+    out = {key: full[key] for key in SUMMARY_METRICS}
+    out["association"] = full.get("association")
+    out["notes"] = full["notes"]
+    out.update(extra)
+    return out
+
+
+def stage_evaluation(directory, evaluation: EvaluationResult, title: str, **extra) -> dict[str, Any]:
+    """Write ``metrics.json`` and ``error_over_distance.png`` into ``directory`` (a staging
+    directory) and return :func:`evaluation_summary` with the file names."""
+    directory = Path(directory)
+    write_metrics_json(evaluation, directory / METRICS_FILE)
+    plot_error_over_distance(evaluation, directory / ERROR_FIGURE_FILE, title=title)
+    return evaluation_summary(evaluation, **extra, metrics_file=METRICS_FILE, figure=ERROR_FIGURE_FILE)
+
+
+# ----------------------------------------------------------------------------- noise
+
+
+def _g(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def describe_noise(spec: NoiseSpec | None, seed: bool = True, ascii: bool = False) -> str:
+    """A short human description of the injected noise ("none" when there is none);
+    ``ascii`` spells σv, σω, σpx as "v", "w", "px" (for PLY headers)."""
+    if spec is None or spec.is_zero:
+        return "none"
+    sv, sw, spx = ("v", "w", "pixels") if ascii else ("σv", "σω", "σpx")
+    parts = []
+    if spec.velocity_noise_mps:
+        parts.append(f"{sv} {_g(spec.velocity_noise_mps)} m/s")
+    if spec.angular_noise_radps:
+        parts.append(f"{sw} {_g(spec.angular_noise_radps)} rad/s")
+    if any(spec.velocity_bias_mps):
+        parts.append("v bias (" + ", ".join(_g(b) for b in spec.velocity_bias_mps) + ") m/s")
+    if any(spec.angular_bias_radps):
+        parts.append(f"{'w' if ascii else 'ω'} bias (" + ", ".join(_g(b) for b in spec.angular_bias_radps) + ") rad/s")
+    if spec.pixel_noise_px:
+        parts.append(f"{spx} {_g(spec.pixel_noise_px)} px")
+    if spec.outlier_fraction:
+        parts.append(f"{_g(100 * spec.outlier_fraction)} % outliers")
+    text = ", ".join(parts)
+    return f"{text} (seed {spec.seed})" if seed else text
+
+
+def injected_noise_record(spec: NoiseSpec | None, info: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """What summary.json records under ``"injected_noise"``: the NoiseSpec's fields and
+    what :func:`inject_noise` reports (e.g. ``outliers_injected``); None without noise."""
+    if spec is None:
+        return None
+    record = spec.to_dict()
+    record.update({k: v for k, v in (info or {}).items() if k != "spec"})
+    return record
+
+
+def describe_filter_noise(options: FilterOptions) -> str:
+    return f"σv {_g(options.velocity_noise_mps)} m/s, σω {_g(options.angular_noise_radps)} rad/s"
+
+
+# ----------------------------------------------------------------------------- comparison
+
+
+@dataclass
+class MethodResult:
+    """One method of a comparison: its run and, with a ground truth, its evaluation."""
+
+    key: str
+    result: RunResult
+    evaluation: EvaluationResult | None = None
+
+    @property
+    def label(self) -> str:
+        return METHOD_LABELS[self.key]
+
+    @property
+    def ate_m(self) -> float | None:
+        if self.evaluation is None or not math.isfinite(self.evaluation.ape.rmse):
+            return None
+        return float(self.evaluation.ape.rmse)
+
+    def to_dict(self) -> dict[str, Any]:
+        r = self.result
+        st = r.stats
+        lm = r.landmarks
+        ts = np.asarray(r.timestamps_s)
+        processed_s = float(ts[-1] - ts[0]) if ts.size > 1 else 0.0
+        return {
+            "label": self.label,
+            "mode": r.mode,
+            "directory": self.key,
+            "frames": st.frames,
+            "frames_processed": st.frames_processed,
+            "landmarks_in_map": len(lm) if lm is not None else 0,
+            "landmarks_rejected": int(np.count_nonzero(lm.status)) if lm is not None else 0,
+            "filter_seconds": st.filter_seconds,
+            "real_time_factor": st.filter_seconds / processed_s if processed_s > 0 else None,
+            "partial": bool(r.partial),
+            "error": r.error,
+            "evaluation": evaluation_summary(self.evaluation) if self.evaluation is not None else None,
+        }
+
+
+@dataclass
+class Comparison:
+    """Localization + mapping ("separately") and SLAM on the same (noisy) sequence.
+
+    Attributes:
+        sequence: the sequence the filters ran on (with the injected noise).
+        options: the filter options of both runs.
+        noise: the injected noise, or None.
+        noise_info: what :func:`inject_noise` reported, or None.
+        methods: ``{"separate": MethodResult, "slam": MethodResult}``.
+        ground_truth: the ground truth (world_T_imu), or None.
+        ground_truth_info: provenance of the ground truth (file, format, frame).
+        dataset: name, path, frames, landmarks, duration and a display ``label``.
+    """
+
+    sequence: Sequence
+    options: FilterOptions
+    noise: NoiseSpec | None
+    noise_info: dict[str, Any] | None
+    methods: dict[str, MethodResult]
+    ground_truth: TrajectoryFile | None = None
+    ground_truth_info: dict[str, Any] | None = None
+    dataset: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        return str(self.dataset.get("label") or self.sequence.name)
+
+    @property
+    def partial(self) -> bool:
+        return any(m.result.partial for m in self.methods.values())
+
+    def ground_truth_poses(self) -> np.ndarray | None:
+        """The ground-truth poses of the dataset's frames (for drawing), or None."""
+        if self.ground_truth is None:
+            return None
+        gt = self.ground_truth
+        if gt.timestamps_s is None:
+            return gt.world_T_body[: self.sequence.n_frames]
+        keep = (gt.timestamps_s >= self.sequence.timestamps_s[0] - DEFAULT_MAX_DIFF_S) & \
+               (gt.timestamps_s <= self.sequence.timestamps_s[-1] + DEFAULT_MAX_DIFF_S)
+        return gt.world_T_body[keep]
+
+    def to_dict(self) -> dict[str, Any]:
+        from vislam import __version__
+
+        return {
+            "vislam_version": __version__,
+            "dataset": dict(self.dataset),
+            "options": self.options.to_dict(),
+            "injected_noise": injected_noise_record(self.noise, self.noise_info),
+            "ground_truth": self.ground_truth_info,
+            "methods": {key: m.to_dict() for key, m in self.methods.items()},
+            "ate_m": {key: m.ate_m for key, m in self.methods.items()},
+            "partial": self.partial,
+        }
+
+
+def dataset_record(sequence: Sequence, path=None, label: str | None = None) -> dict[str, Any]:
+    """The ``dataset`` entry of summary.json / comparison.json."""
+    return {"name": sequence.name, "label": label or sequence.name,
+            "path": str(Path(path).resolve()) if path is not None else (sequence.source or None),
+            "frames": sequence.n_frames, "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s}
+
+
+def run_comparison(sequence: Sequence, options: FilterOptions, *, noise: NoiseSpec | None = None,
+                   ground_truth: TrajectoryFile | None = None, ground_truth_info: Mapping[str, Any] | None = None,
+                   dataset: Mapping[str, Any] | None = None,
+                   progress: Callable[[str, int], None] | None = None) -> Comparison:
+    """Inject ``noise`` (if any), run "separately" (localization, then mapping on its
+    trajectory) and SLAM with the same ``options``, and evaluate both against
+    ``ground_truth`` (world_T_imu, e.g. from :func:`load_run_ground_truth`) if given.
+
+    ``progress(method, frames_done)`` is called during the runs. A SLAM run that stops
+    early gives a partial result (``Comparison.partial``), evaluated on its frames.
+    """
+    noise_info = None
+    if noise is not None:
+        sequence, noise_info = inject_noise(sequence, noise)
+    methods: dict[str, MethodResult] = {}
+    for key in METHODS:
+        cb = (lambda done, key=key: progress(key, done)) if progress else None
+        result = run_estimator(sequence, METHOD_MODES[key], options, progress=cb)
+        evaluation = evaluate_run(result, ground_truth, sequence) if ground_truth is not None else None
+        methods[key] = MethodResult(key, result, evaluation)
+        logger.info("%s: %s done in %.2f s", sequence.name, key, result.stats.filter_seconds)
+    info = dict(ground_truth_info) if ground_truth_info else (
+        {"path": str(ground_truth.path), "format": ground_truth.fmt} if ground_truth is not None else None)
+    return Comparison(sequence, options, noise, noise_info, methods, ground_truth, info,
+                      dict(dataset) if dataset else dataset_record(sequence))
+
+
+def _fmt_m(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.2f} m"
+
+
+def comparison_title(comparison: Comparison) -> tuple[str, str]:
+    """(title, subtitle) of the comparison figure."""
+    title = f"{comparison.label}: {METHOD_SHORT['separate']} vs {METHOD_SHORT['slam']}"
+    lines = [f"added noise: {describe_noise(comparison.noise)} · filter noise: {describe_filter_noise(comparison.options)}"]
+    if comparison.ground_truth is not None:
+        lines.append("ATE (SE(3)-aligned RMSE): " + ", ".join(
+            f"{METHOD_SHORT[k]} {_fmt_m(m.ate_m)}" for k, m in comparison.methods.items()))
+    return title, "\n".join(lines)
+
+
+def _method_layer_label(m: MethodResult) -> str:
+    label = m.label
+    r = m.result
+    if r.partial:
+        label += f" — stopped at frame {r.stats.frames_processed} of {r.stats.frames}"
+    return label
+
+
+def plot_comparison(comparison: Comparison, path) -> dict:
+    """Draw the comparison figure (the report's Figs 7–9) at ``path``."""
+    from vislam.tools.plotting import MapLayer, plot_comparison_map
+
+    # "separately" drawn wider underneath, so that it shows where both trajectories coincide
+    layers = [MapLayer(m.result.world_T_imu, _method_layer_label(m), METHOD_COLORS[k], m.result.landmarks,
+                       linewidth=2.8 if k == "separate" else 1.5, short=METHOD_SHORT[k])
+              for k, m in comparison.methods.items()]
+    title, subtitle = comparison_title(comparison)
+    return plot_comparison_map(path, layers, title, subtitle, ground_truth=comparison.ground_truth_poses())
+
+
+def write_comparison(directory, comparison: Comparison, start_time: float | None = None) -> dict[str, Any]:
+    """Write ``separate/``, ``slam/``, ``comparison.png`` and ``comparison.json`` into
+    ``directory`` — meant to be a staging directory (see :meth:`OutputStage.commit`);
+    the run folders are themselves written all-or-nothing. Returns comparison.json's
+    content."""
+    directory = Path(directory)
+    label = comparison.label
+    noise_record = injected_noise_record(comparison.noise, comparison.noise_info)
+    if comparison.noise is not None and not comparison.noise.is_zero:
+        label = f"{label} + noise"
+    summaries = {}
+    for key, m in comparison.methods.items():
+        dataset = {**comparison.dataset, "label": label}
+        if m.result.mode == "mapping":
+            dataset["poses"] = "localization"
+        extra: dict[str, Any] = {"injected_noise": noise_record, "comparison": {"method": key, "label": m.label}}
+        with OutputStage(directory / key) as stage:
+            if m.evaluation is not None:
+                extra["evaluation"] = stage_evaluation(
+                    stage.staging, m.evaluation, f"{label} — {m.label} vs ground truth",
+                    ground_truth=comparison.ground_truth_info)
+            summaries[key] = write_run_outputs(stage, m.result, dataset=dataset,
+                                               duration_s=comparison.sequence.duration_s, start_time=start_time,
+                                               extra=extra)
+    view = plot_comparison(comparison, directory / COMPARISON_FIGURE)
+    content = comparison.to_dict()
+    content["figure"] = COMPARISON_FIGURE
+    content["landmarks_outside_figure"] = view["landmarks_outside_view"]
+    content["total_seconds"] = (time.time() - start_time) if start_time is not None else None
+    write_json(directory / COMPARISON_JSON, content)
+    return content
+
+
+# ----------------------------------------------------------------------------- committing
+
+

@@ -1,0 +1,188 @@
+"""``vislam compare`` end to end, and ``vislam run --gt`` (evaluation in the same run)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from vislam.cli import main
+from vislam.core.lie import se3_inverse
+from vislam.core.simulate import SimulationOptions, simulate_drive
+from vislam.tools import comparison as comparison_module
+from vislam.tools.evaluation import evaluate_files
+from vislam.tools.simulate_io import write_simulated_drive
+from vislam.tools.trajectory_io import write_kitti
+
+RUN_FILES = {"trajectory.tum", "trajectory.kitti", "trajectory.png", "summary.json", "landmarks.ply",
+             "landmarks.npz"}
+EVAL_FILES = {"metrics.json", "error_over_distance.png"}
+NOISE = ["--add-velocity-noise", "0.5", "--add-angular-noise", "0.05", "--velocity-noise", "0.5",
+         "--angular-noise", "0.05"]
+
+
+def _drive(tmp_path_factory, n_frames):
+    directory = tmp_path_factory.mktemp(f"drive{n_frames}")
+    drive = simulate_drive(SimulationOptions(n_frames=n_frames, seed=1))
+    write_simulated_drive(drive, directory)
+    return directory, drive
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    return _drive(tmp_path_factory, 120)
+
+
+@pytest.fixture(scope="module")
+def long(tmp_path_factory):
+    return _drive(tmp_path_factory, 300)
+
+
+def names(path):
+    return {p.name for p in path.iterdir()}
+
+
+def test_compare_writes_both_runs_the_figure_and_the_json(tmp_path, small, capsys):
+    data, drive = small
+    out = tmp_path / "cmp"
+    assert main(["compare", str(data / "sequence.npz"), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "separately" in printed and "SLAM" in printed and str(out) in printed
+    assert names(out) == {"separate", "slam", "comparison.png", "comparison.json"}
+    assert names(out / "separate") == RUN_FILES and names(out / "slam") == RUN_FILES
+    assert (out / "comparison.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    content = json.loads((out / "comparison.json").read_text())
+    assert content["injected_noise"] is None and content["ground_truth"] is None
+    for key, mode in (("separate", "mapping"), ("slam", "slam")):
+        m = content["methods"][key]
+        summary = json.loads((out / key / "summary.json").read_text())
+        assert summary["mode"] == mode and m["mode"] == mode
+        assert m["frames"] == m["frames_processed"] == 120
+        assert m["landmarks_in_map"] == summary["landmarks_in_map"] > 0
+        assert m["filter_seconds"] == pytest.approx(summary["filter_seconds"])
+        assert m["evaluation"] is None
+    # "separately" maps on the localization trajectory: its trajectory is dead reckoning
+    loc = tmp_path / "loc"
+    assert main(["run", str(data / "sequence.npz"), "--mode", "localization", "--out", str(loc), "--quiet"]) == 0
+    assert (loc / "trajectory.tum").read_text() == (out / "separate" / "trajectory.tum").read_text()
+
+
+def test_compare_with_ground_truth_slam_beats_localization_under_imu_noise(tmp_path, long):
+    data, drive = long
+    out = tmp_path / "cmp"
+    code = main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet", *NOISE,
+                 "--gt", str(data / "groundtruth.tum"), "--gt-format", "tum"])
+    assert code == 0
+    content = json.loads((out / "comparison.json").read_text())
+    ate = content["ate_m"]
+    assert ate["separate"] is not None and ate["slam"] is not None
+    assert ate["slam"] < 0.5 * ate["separate"], ate
+    assert content["injected_noise"]["velocity_noise_mps"] == 0.5
+    assert content["ground_truth"]["format"] == "tum"
+    for key in ("separate", "slam"):
+        assert names(out / key) == RUN_FILES | EVAL_FILES
+        summary = json.loads((out / key / "summary.json").read_text())
+        metrics = json.loads((out / key / "metrics.json").read_text())
+        assert summary["injected_noise"]["angular_noise_radps"] == 0.05
+        assert summary["options"]["velocity_noise_mps"] == 0.5
+        assert summary["evaluation"]["ape_rmse_m"] == pytest.approx(ate[key])
+        assert metrics["ape_rmse_m"] == pytest.approx(ate[key])
+        assert content["methods"][key]["evaluation"]["kitti_t_pct"] == pytest.approx(metrics["kitti_t_pct"],
+                                                                                      nan_ok=True)
+        # the same number as evaluating the written trajectory afterwards
+        independent = evaluate_files(out / key / "trajectory.tum", data / "groundtruth.tum", gt_format="tum")
+        assert independent.ape.rmse == pytest.approx(ate[key], rel=1e-9)
+
+
+def test_compare_replaces_an_earlier_output_as_a_whole(tmp_path, small):
+    data, _ = small
+    out = tmp_path / "cmp"
+    assert main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet"]) == 0
+    (out / "slam" / "stale.txt").write_text("from an older run")
+    (out / "unrelated.txt").write_text("keep me")
+    assert main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet", "--add-pixel-noise", "1"]) == 0
+    assert names(out / "slam") == RUN_FILES
+    assert (out / "unrelated.txt").read_text() == "keep me"
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no staging debris
+    assert json.loads((out / "comparison.json").read_text())["injected_noise"]["pixel_noise_px"] == 1.0
+
+
+def test_compare_interrupted_while_writing_leaves_nothing(tmp_path, small, monkeypatch, capsys):
+    data, _ = small
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(comparison_module, "plot_comparison", interrupted)  # after separate/ and slam/ are staged
+    out = tmp_path / "deep" / "cmp"
+    assert main(["compare", str(data / "sequence.npz"), "--out", str(out)]) == 130
+    assert "no output written" in capsys.readouterr().err
+    assert not (tmp_path / "deep").exists()
+
+
+def test_compare_bad_inputs_one_line_nonzero_nothing_written(tmp_path, small, capsys):
+    data, drive = small
+    seq = str(data / "sequence.npz")
+    garbage = tmp_path / "garbage.txt"
+    garbage.write_text("1 2 3\n")
+    too_long = tmp_path / "too_long.kitti"
+    write_kitti(too_long, np.concatenate([drive.world_T_imu, drive.world_T_imu]))
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    cases = [
+        [str(tmp_path / "missing.npz")],
+        [seq, "--gt", str(tmp_path / "missing.txt")],
+        [seq, "--gt", str(garbage)],
+        [seq, "--gt", str(too_long)],
+        [seq, "--add-angular-noise", "-0.1"],
+        [seq, "--add-velocity-bias", "0.1"],
+        [seq, "--velocity-noise", "-1"],
+    ]
+    for i, args in enumerate(cases):
+        out = tmp_path / f"out{i}"
+        code = main(["compare", *args, "--out", str(out)])
+        err = capsys.readouterr().err
+        assert code != 0, args
+        assert len(err.strip().splitlines()) == 1 and err.startswith("vislam compare: error:"), (args, err)
+        assert not out.exists(), args
+    code = main(["compare", seq, "--out", str(a_file)])
+    assert code != 0 and "not a directory" in capsys.readouterr().err
+    assert a_file.read_text() == "x"
+
+
+# ----------------------------------------------------------------------------- vislam run --gt
+
+
+def test_run_with_ground_truth_writes_metrics_and_prints_ate(tmp_path, long, capsys):
+    data, drive = long
+    out = tmp_path / "run"
+    assert main(["run", str(data / "sequence.npz"), "--out", str(out), *NOISE,
+                 "--gt", str(data / "groundtruth.kitti")]) == 0
+    printed = capsys.readouterr().out
+    assert "ATE:" in printed
+    assert names(out) == RUN_FILES | EVAL_FILES
+    summary = json.loads((out / "summary.json").read_text())
+    ev = summary["evaluation"]
+    for key in ("ape_rmse_m", "kitti_t_pct", "kitti_r_deg_per_100m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg"):
+        assert key in ev
+    assert ev["n_frames_compared"] == 300 and ev["ground_truth"]["frame"] == "imu"
+    assert f"{ev['ape_rmse_m']:.3f} m" in printed
+    assert "metrics.json" in summary["outputs"] and "error_over_distance.png" in summary["outputs"]
+    assert json.loads((out / "metrics.json").read_text())["ape_rmse_m"] == pytest.approx(ev["ape_rmse_m"])
+
+    # the same truth as LEFT CAMERA poses (the shared data's convention) with --gt-frame cam
+    cam_T_imu = drive.sequence.cam_T_imu
+    world_T_cam = cam_T_imu @ drive.world_T_imu @ se3_inverse(cam_T_imu)
+    cam_gt = tmp_path / "cam.kitti"
+    write_kitti(cam_gt, world_T_cam)
+    out_cam = tmp_path / "run_cam"
+    assert main(["run", str(data / "sequence.npz"), "--out", str(out_cam), "--quiet", *NOISE,
+                 "--gt", str(cam_gt), "--gt-frame", "cam"]) == 0
+    ev_cam = json.loads((out_cam / "summary.json").read_text())["evaluation"]
+    assert ev_cam["ape_rmse_m"] == pytest.approx(ev["ape_rmse_m"], rel=1e-6)
+    # ... and read as IMU poses by mistake it gives a different (worse) answer
+    out_wrong = tmp_path / "run_wrong"
+    assert main(["run", str(data / "sequence.npz"), "--out", str(out_wrong), "--quiet", *NOISE,
+                 "--gt", str(cam_gt)]) == 0
+    assert json.loads((out_wrong / "summary.json").read_text())["evaluation"]["ape_rmse_m"] > ev["ape_rmse_m"]

@@ -1,0 +1,161 @@
+"""``vislam report`` on a tiny data folder laid out like the shared data."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+
+import pytest
+
+from vislam.cli import main
+from vislam.core.lie import se3_inverse
+from vislam.core.simulate import SimulationOptions, simulate_drive
+from vislam.tools.dataset_io import save_sequence
+from vislam.tools.report import ReportSettings, generate_report
+from vislam.tools.trajectory_io import write_kitti
+
+N_FRAMES = 120
+SMALL = ["--sim-frames", "100", "--noise-levels", "0.3:0.006"]
+
+
+def vislam(*args, timeout=600):
+    return subprocess.run([sys.executable, "-m", "vislam", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    """sparse/0100.npz (with KITTI left-camera ground truth) and sparse/0101.npz (without);
+    no dense/ folder; a ground-truth file that matches no dataset."""
+    root = tmp_path_factory.mktemp("data")
+    (root / "sparse").mkdir()
+    (root / "groundtruth").mkdir()
+    for seed, stem in ((0, "0100"), (1, "0101")):
+        drive = simulate_drive(SimulationOptions(n_frames=N_FRAMES, seed=seed))
+        save_sequence(drive.sequence, root / "sparse" / f"{stem}.npz")
+        if stem == "0100":
+            cam_T_imu = drive.sequence.cam_T_imu
+            write_kitti(root / "groundtruth" / "0100.txt", cam_T_imu @ drive.world_T_imu @ se3_inverse(cam_T_imu))
+    write_kitti(root / "groundtruth" / "0999.txt", drive.world_T_imu)
+    return root
+
+
+@pytest.fixture(scope="module")
+def report(data_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("report") / "out"
+    proc = vislam("report", "--data", data_dir, "--out", out, "--quiet", *SMALL)
+    return out, proc
+
+
+def referenced_figures(markdown: str) -> list[str]:
+    return re.findall(r"!\[[^\]]*\]\(([^)]+)\)", markdown)
+
+
+def table_rows(markdown: str, first_cell: str) -> list[list[str]]:
+    rows = []
+    for line in markdown.splitlines():
+        if line.startswith("| ") and line.split("|")[1].strip() == first_cell:
+            rows.append([c.strip() for c in line.strip().strip("|").split("|")])
+    return rows
+
+
+def test_report_is_written_quietly_with_every_figure(report):
+    out, proc = report
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "" and proc.stderr == ""
+    assert {p.name for p in out.iterdir()} == {"report.md", "report.html", "runs", "figures"}
+    md = (out / "report.md").read_text()
+    figures = referenced_figures(md)
+    assert len(figures) >= 10
+    for rel in figures:
+        assert not rel.startswith("/")
+        path = out / rel
+        assert path.is_file() and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", rel
+    html = (out / "report.html").read_text()
+    assert html.startswith("<!DOCTYPE html>")
+    assert html.count('src="data:image/png;base64,') == len(figures)  # self-contained
+    for heading in ("## 1. ", "## 2. ", "## 3. ", "## 4. Summary"):
+        assert heading in md
+        assert heading[3:] in html
+
+
+def test_report_metrics_row_for_the_dataset_with_ground_truth(report):
+    out, _ = report
+    md = (out / "report.md").read_text()
+    header = next(line for line in md.splitlines() if line.startswith("| Section |"))
+    columns = [c.strip() for c in header.strip().strip("|").split("|")]
+    ate = columns.index("ATE (m)")
+    rows = table_rows(md, "datasets")
+    with_gt = [r for r in rows if "0100" in r[1]]
+    without = [r for r in rows if "0101" in r[1]]
+    assert {r[2] for r in with_gt} == {"separately", "SLAM"} and len(without) == 2
+    for r in with_gt:
+        key = "slam" if r[2] == "SLAM" else "separate"
+        metrics = json.loads((out / "runs" / "sparse-0100" / key / "metrics.json").read_text())
+        assert r[ate] == f"{metrics['ape_rmse_m']:.2f}"
+        assert float(r[ate]) < 5.0  # the camera ground truth was converted to the IMU
+    assert all(r[ate] == "n/a" for r in without)
+    # the noise comparison ran on both sparse datasets, twice per level (filter default / told)
+    noise = table_rows(md, "noise")
+    assert len(noise) == 2 * 2 * 2
+    assert all(r[3] == "σv 0.3 m/s, σω 0.006 rad/s" for r in noise)
+    summary = json.loads((out / "runs" / "noise-sparse-0100-v0.3-w0.006-filter-told" / "slam" /
+                          "summary.json").read_text())
+    assert summary["injected_noise"]["velocity_noise_mps"] == 0.3
+    assert summary["options"]["velocity_noise_mps"] == pytest.approx((0.02**2 + 0.3**2) ** 0.5)
+    # the moving-landmark section: localization + 4 SLAM variants on two scenes, all graded
+    moving = table_rows(md, "moving")
+    assert len(moving) == 10 and all(r[ate] != "n/a" for r in moving)
+    # what was missing is said
+    assert "dense" in md and "0999.txt" in md
+
+
+def test_report_progress_lines_on_stderr(data_dir, tmp_path, capsys):
+    out = tmp_path / "r"
+    code = main(["report", "--data", str(data_dir), "--out", str(out), "--sim-frames", "0", "--noise-levels", "none"])
+    assert code == 0
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 4  # load, two datasets, write
+    assert all(re.match(r"vislam report: \[\d+/4\] ", line) for line in lines)
+    md = (out / "report.md").read_text()
+    assert "section skipped" in md
+    assert not table_rows(md, "noise") and not table_rows(md, "moving")
+
+
+def test_library_returns_the_structured_result(data_dir, tmp_path):
+    lines = []
+    result = generate_report(data_dir, tmp_path / "r", ReportSettings(noise_levels=(), simulation_frames=0),
+                             log=lines.append)
+    assert result.markdown_path.is_file() and result.html_path.is_file()
+    assert len(lines) == 4 and result.seconds > 0
+    assert [r.method for r in result.rows] == ["separately", "SLAM"] * 2
+    assert all((tmp_path / "r" / f).is_file() for f in result.figures)
+    gt_rows = [r for r in result.rows if "0100" in r.dataset]
+    assert gt_rows and all(r.ate_m is not None and r.kitti_t_pct is not None for r in gt_rows)
+    assert all(r.ate_m is None for r in result.rows if "0101" in r.dataset)
+
+
+def test_nothing_usable_is_a_clear_error(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "sparse").mkdir()
+    (empty / "sparse" / "notes.txt").write_text("no datasets here")
+    broken = tmp_path / "broken"
+    (broken / "dense").mkdir(parents=True)
+    (broken / "dense" / "0001.npz").write_bytes(b"not a zip")
+    for data, words in ((empty, "no usable dataset"), (broken, "0001.npz"), (tmp_path / "missing", "no such")):
+        out = tmp_path / f"out-{data.name}"
+        code = main(["report", "--data", str(data), "--out", str(out), "--quiet"])
+        err = capsys.readouterr().err
+        assert code != 0
+        assert len(err.strip().splitlines()) == 1 and words in err, err
+        assert not out.exists()
+
+
+def test_bad_report_options(tmp_path, data_dir, capsys):
+    code = main(["report", "--data", str(data_dir), "--out", str(tmp_path / "o"), "--sim-frames", "-5"])
+    assert code != 0 and "--sim-frames" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
