@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -25,3 +26,17 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data not available: {SHARED_DATA}")
     return SHARED_DATA
+
+
+def drifting_estimate(rng, gt: np.ndarray, sigma_t: float = 0.03, sigma_r: float = 0.002) -> np.ndarray:
+    """An estimate that drifts: the relative motions of ``gt`` (N, 4, 4) with random
+    errors (σ per axis, m and rad), chained from ``gt[0]``."""
+    from vislam.core.lie import se3_exp, se3_inverse
+
+    rel = se3_inverse(gt[:-1]) @ gt[1:]
+    noise = se3_exp(np.concatenate([rng.normal(0, sigma_t, (len(rel), 3)), rng.normal(0, sigma_r, (len(rel), 3))], 1))
+    est = np.empty_like(gt)
+    est[0] = gt[0]
+    for k in range(len(rel)):
+        est[k + 1] = est[k] @ rel[k] @ noise[k]
+    return est

@@ -185,6 +185,8 @@ def test_fast_update_matches_dense_reference(ekf):
 
 
 def _state_after_one_step(drive, opts):
+    """State initialized at frame 0 and predicted to frame 1, with frame 1's
+    observations of landmarks in the state: (sequence, model, state, slots, z)."""
     seq = drive.sequence
     model = StereoModel(seq.camera, seq.cam_T_imu)
     state = SlamState(np.eye(4), np.zeros((6, 6)), seq.n_landmarks)
@@ -193,16 +195,15 @@ def _state_after_one_step(drive, opts):
     slam_initialize_landmarks(state, model, ids[ok], z[ok], opts.V)
     tau, u = motion_increments(seq)
     predict_state(state, tau[0], u[0], opts.W)
-    return seq, model, state
+    ids, z = seq.observations.frame(1)
+    slots = state.slot_of[ids]
+    return seq, model, state, slots[slots >= 0], z[slots >= 0]
 
 
 def test_update_keeps_covariance_symmetric_psd_and_reduces_uncertainty():
     drive = simulate_drive(SimulationOptions(seed=2, n_frames=5, **NOISY_IMU))
     opts = FilterOptions(**NOISY_IMU)
-    seq, model, state = _state_after_one_step(drive, opts)
-    ids, z = seq.observations.frame(1)
-    slots = state.slot_of[ids]
-    z, slots = z[slots >= 0], slots[slots >= 0]
+    seq, model, state, slots, z = _state_after_one_step(drive, opts)
     before = state.cov.copy()
     r, Hp, Hl, in_front, nis, _ = slam_predict_nis(state, model, slots, z, opts.V)
     slam_update(state, slots, r, Hp, Hl, opts.V)
@@ -217,10 +218,7 @@ def test_update_keeps_covariance_symmetric_psd_and_reduces_uncertainty():
 def test_update_matches_reference_in_one_step():
     drive = simulate_drive(SimulationOptions(seed=4, n_frames=5, **NOISY_IMU))
     opts = FilterOptions(**NOISY_IMU)
-    seq, model, state = _state_after_one_step(drive, opts)
-    ids, z = seq.observations.frame(1)
-    slots = state.slot_of[ids]
-    z, slots = z[slots >= 0], slots[slots >= 0]
+    seq, model, state, slots, z = _state_after_one_step(drive, opts)
     r, Hp, Hl, _, _, _ = slam_predict_nis(state, model, slots, z, opts.V)
     a, b = copy.deepcopy(state), copy.deepcopy(state)
     slam_update(a, slots, r, Hp, Hl, opts.V)
@@ -404,10 +402,7 @@ def test_schmidt_update_leaves_pose_and_keeps_covariance_psd():
 
     drive = simulate_drive(SimulationOptions(seed=2, n_frames=5, **NOISY_IMU))
     opts = FilterOptions(**NOISY_IMU)
-    seq, model, state = _state_after_one_step(drive, opts)
-    ids, z = seq.observations.frame(1)
-    slots = state.slot_of[ids]
-    z, slots = z[slots >= 0], slots[slots >= 0]
+    seq, model, state, slots, z = _state_after_one_step(drive, opts)
     pose_before, P = state.imu_T_world.copy(), state.cov.copy()
     r, Hp, Hl, _, _, _ = slam_predict_nis(state, model, slots, z, opts.V)
     # dense reference: Joseph form with the gain's rows outside the updated landmarks zeroed

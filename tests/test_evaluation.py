@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO_ROOT, shared_file
+from conftest import REPO_ROOT, drifting_estimate, shared_file
 from vislam.core.lie import make_pose, se3_exp, se3_inverse, so3_exp
 from vislam.errors import ConfigError, GroundTruthError
 from vislam.tools.evaluation import (
@@ -48,16 +48,6 @@ def drive(rng, n: int, speed_m: float = 1.2) -> np.ndarray:
     for i in range(n - 1):
         poses[i + 1] = poses[i] @ steps[i]
     return poses
-
-
-def drifting_estimate(rng, gt: np.ndarray, sigma_t=0.03, sigma_r=0.002) -> np.ndarray:
-    rel = se3_inverse(gt[:-1]) @ gt[1:]
-    noise = se3_exp(np.concatenate([rng.normal(0, sigma_t, (len(rel), 3)), rng.normal(0, sigma_r, (len(rel), 3))], 1))
-    est = np.empty_like(gt)
-    est[0] = gt[0]
-    for i in range(len(rel)):
-        est[i + 1] = est[i] @ rel[i] @ noise[i]
-    return est
 
 
 def dead_reckoning(timestamps, linear_velocity, angular_velocity) -> np.ndarray:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vislam.core.lie import make_pose, se3_exp, se3_inverse, so3_exp
+from conftest import drifting_estimate
+from vislam.core.lie import make_pose, se3_exp, so3_exp
 from vislam.core.metrics import (
     KITTI_SEGMENT_LENGTHS_M,
     kitti_odometry_errors,
@@ -48,17 +49,6 @@ def random_drive(rng, n: int) -> np.ndarray:
     for k in range(n - 1):
         poses[k + 1] = poses[k] @ steps[k]
     return poses
-
-
-def perturbed(rng, gt: np.ndarray, sigma_t=0.02, sigma_r=0.002) -> np.ndarray:
-    """An estimate that drifts: the relative motions of ``gt`` with random errors, chained."""
-    rel = se3_inverse(gt[:-1]) @ gt[1:]
-    noise = se3_exp(np.concatenate([rng.normal(0, sigma_t, (len(rel), 3)), rng.normal(0, sigma_r, (len(rel), 3))], 1))
-    est = np.empty_like(gt)
-    est[0] = gt[0]
-    for k in range(len(rel)):
-        est[k + 1] = est[k] @ rel[k] @ noise[k]
-    return est
 
 
 def reference_kitti(est, gt, lengths=KITTI_SEGMENT_LENGTHS_M, step=10):
@@ -148,7 +138,7 @@ def test_metric_is_invariant_to_a_rigid_transform_of_the_estimate():
     # arccos near 1 resolves angles only to ~sqrt(2 eps) ~ 2e-8 rad
     np.testing.assert_allclose(res.r_err_rad_per_m, 0.0, atol=1e-8)
 
-    est = perturbed(rng, gt)
+    est = drifting_estimate(rng, gt, sigma_t=0.02)
     base = kitti_odometry_errors(est, gt)
     moved = kitti_odometry_errors(A @ est, gt)
     assert base.t_pct > 0.1
@@ -161,7 +151,7 @@ def test_segments_match_straightforward_loop(seed):
     rng = np.random.default_rng(seed)
     n = int(rng.integers(300, 700))
     gt = random_drive(rng, n)
-    est = perturbed(rng, gt, sigma_t=0.05, sigma_r=0.003)
+    est = drifting_estimate(rng, gt, sigma_t=0.05, sigma_r=0.003)
     res = kitti_odometry_errors(est, gt)
     ref = reference_kitti(est, gt)
     assert res.n_segments == len(ref) > 0
@@ -185,7 +175,7 @@ def test_segments_match_straightforward_loop(seed):
 def test_step_and_lengths_parameters():
     rng = np.random.default_rng(6)
     gt = random_drive(rng, 300)
-    est = perturbed(rng, gt)
+    est = drifting_estimate(rng, gt, sigma_t=0.02)
     res = kitti_odometry_errors(est, gt, lengths_m=(50.0, 150.0), step_frames=3)
     ref = reference_kitti(est, gt, lengths=(50.0, 150.0), step=3)
     assert res.n_segments == len(ref)
