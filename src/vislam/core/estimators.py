@@ -130,49 +130,61 @@ class _RepeatDetector:
 
 
 class _MapBuilder:
-    """Collects frozen landmark entries (marginalized, rejected or final) in growable
-    column buffers (amortized O(1) per entry, no per-call small arrays)."""
+    """Collects frozen landmark entries (marginalized, rejected or final) in fixed-size
+    chunks of columns: no per-entry small arrays, no doubling slack, and :meth:`build`
+    frees each column's chunks as soon as its sorted copy exists."""
 
     _COLUMNS = {"ids": ((), np.int64), "track": ((), np.int64), "p": ((3,), np.float64),
                 "cov": ((3, 3), np.float64), "nobs": ((), np.int64), "ngated": ((), np.int64),
                 "first": ((), np.int64), "last": ((), np.int64), "status": ((), np.uint8),
                 "v": ((3,), np.float64)}
+    CHUNK = 4096
 
-    def __init__(self, capacity: int = 256):
+    def __init__(self):
         self.n = 0
-        self._cols = {k: np.zeros((capacity,) + shape, dtype=dt) for k, (shape, dt) in self._COLUMNS.items()}
+        self._chunks: list[dict[str, np.ndarray]] = []
+
+    def _new_chunk(self) -> dict[str, np.ndarray]:
+        chunk = {k: np.zeros((self.CHUNK,) + shape, dtype=dt) for k, (shape, dt) in self._COLUMNS.items()}
+        self._chunks.append(chunk)
+        return chunk
 
     def add(self, ids, track, p, cov, nobs, ngated, first, last, status, v=None) -> None:
         k = int(np.size(ids))
-        if k == 0:
-            return
-        if self.n + k > len(self._cols["ids"]):
-            cap = max(self.n + k, 2 * len(self._cols["ids"]))
-            for key, col in self._cols.items():
-                grown = np.zeros((cap,) + col.shape[1:], dtype=col.dtype)
-                grown[:self.n] = col[:self.n]
-                self._cols[key] = grown
-        sl = slice(self.n, self.n + k)
-        c = self._cols
-        c["ids"][sl] = ids
-        c["track"][sl] = track
-        c["p"][sl] = np.reshape(p, (k, 3))
-        c["cov"][sl] = np.reshape(cov, (k, 3, 3))
-        c["nobs"][sl] = nobs
-        c["ngated"][sl] = ngated
-        c["first"][sl] = first
-        c["last"][sl] = last
-        c["status"][sl] = status
-        c["v"][sl] = 0.0 if v is None else np.reshape(v, (k, 3))
-        self.n += k
+        values = {"ids": ids, "track": track, "p": np.reshape(p, (k, 3)), "cov": np.reshape(cov, (k, 3, 3)),
+                  "nobs": nobs, "ngated": ngated, "first": first, "last": last,
+                  "status": np.broadcast_to(status, (k,)), "v": np.zeros((k, 3)) if v is None else np.reshape(v, (k, 3))}
+        done = 0
+        while done < k:
+            offset = self.n % self.CHUNK
+            chunk = self._chunks[-1] if offset else self._new_chunk()
+            m = min(k - done, self.CHUNK - offset)
+            for key, value in values.items():
+                chunk[key][offset:offset + m] = value[done:done + m] if np.ndim(value) else value
+            done += m
+            self.n += m
 
     def build(self) -> LandmarkMap:
-        c = {k: v[:self.n] for k, v in self._cols.items()}
-        order = np.lexsort((c["track"], c["ids"]))
-        return LandmarkMap(ids=c["ids"][order], track=c["track"][order], p_lm_in_world=c["p"][order],
-                           covariance=c["cov"][order], n_observations=c["nobs"][order],
-                           n_gated=c["ngated"][order], first_frame=c["first"][order],
-                           last_frame=c["last"][order], status=c["status"][order], v_lm_in_world=c["v"][order])
+        """The map sorted by (id, track); each column's chunks are released once its
+        sorted copy exists."""
+        n = self.n
+
+        def column(key: str) -> np.ndarray:
+            shape, dt = self._COLUMNS[key]
+            parts = [c.pop(key) for c in self._chunks]
+            return np.concatenate(parts)[:n] if parts else np.zeros((0,) + shape, dtype=dt)
+
+        ids, track = column("ids"), column("track")
+        order = np.lexsort((track, ids))
+        out = {"ids": ids[order], "track": track[order]}
+        del ids, track
+        for key in self._COLUMNS:
+            if key not in out:
+                out[key] = column(key)[order]
+        self._chunks, self.n = [], 0
+        return LandmarkMap(ids=out["ids"], track=out["track"], p_lm_in_world=out["p"], covariance=out["cov"],
+                           n_observations=out["nobs"], n_gated=out["ngated"], first_frame=out["first"],
+                           last_frame=out["last"], status=out["status"], v_lm_in_world=out["v"])
 
 
 class _Tracks:
