@@ -722,7 +722,7 @@ class _ReportBuilder:
 #: The SLAM variants of the moving-landmark section: (key, label, FilterOptions changes, colour).
 MOVING_VARIANTS = (
     ("default", "SLAM, default options", {}, "tab:blue"),
-    ("no-gating", "SLAM without gating", {"gating_probability": None}, "tab:red"),
+    ("no-gating", "SLAM without gating", {"gating_probability": None, "drift_test_probability": None}, "tab:red"),
     ("robust", "SLAM, robust preset", dict(ROBUST_PRESET), "tab:green"),
     ("motion-model", "SLAM with landmark motion model", {"landmark_motion": True}, "tab:purple"),
 )
