@@ -509,7 +509,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                     raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
         except (EstimationError, GeometryError, np.linalg.LinAlgError) as exc:
             error = str(exc) if isinstance(exc, EstimationError) else f"numerical failure at frame {t}: {exc}"
-            logger.error("%s; stopping with a partial result", error)
+            logger.info("%s; stopping with a partial result", error)  # reported by the caller (result.error)
             break
         means[t] = state.imu_T_world
         covs[t] = state.pose_cov
