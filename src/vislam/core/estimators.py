@@ -113,7 +113,7 @@ class _RepeatDetector:
     :meth:`vislam.core.sequence.StereoObservations.repeated_mask`, which is the same test
     over a whole sequence). Memory: one pixel row per landmark id."""
 
-    def __init__(self, M: int, options: FilterOptions, stats: RunStats, name: str):
+    def __init__(self, M: int, options: FilterOptions, stats: RunStats):
         self.enabled = options.repeated_observations != "use"
         self.px = np.zeros((M, 4))
         self.frame = np.full(M, -2, dtype=np.int64)
@@ -323,7 +323,7 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
     builder = _MapBuilder()
     stats = RunStats(frames=T, observations_total=sequence.observations.n_observations)
     obs = sequence.observations
-    repeated = _RepeatDetector(M, options, stats, sequence.name)
+    repeated = _RepeatDetector(M, options, stats)
     split = options.repeated_observations == "split"
     frame_seconds = np.zeros(T)
     frame_seconds[0] = time.perf_counter() - t_start
@@ -402,7 +402,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
     stats = RunStats(frames=T, observations_total=sequence.observations.n_observations)
     frame_seconds = np.zeros(T)
     obs = sequence.observations
-    repeated = _RepeatDetector(M, options, stats, sequence.name)
+    repeated = _RepeatDetector(M, options, stats)
     split = options.repeated_observations == "split"
     seen = np.zeros(M, dtype=bool)
     last_correction = np.zeros(6)  # pose correction of the previous update (OC transition)

@@ -144,11 +144,6 @@ class SlamState:
         rows = self.landmark_rows(slots)[:, :3]
         return self.cov[rows[:, :, None], rows[:, None, :]]
 
-    def landmark_velocity_cov(self, slots: np.ndarray) -> np.ndarray:
-        """(k, 3, 3) marginal covariances of the velocities (motion model only)."""
-        rows = self.landmark_rows(slots)[:, 3:6]
-        return self.cov[rows[:, :, None], rows[:, None, :]]
-
     def predict_landmarks(self, tau: float, accel_var: float) -> None:
         """Constant-velocity prediction of every landmark (motion model, lm_dim 6)::
 
@@ -158,15 +153,12 @@ class SlamState:
         if self.lm_dim != 6 or self.n_landmarks == 0:
             return
         self.p_lm_in_world = self.p_lm_in_world + tau * self.v_lm_in_world
-        n = self.dim
         P = self.cov
-        L = self.n_landmarks
-        pos = (POSE_DIM + 6 * np.arange(L)[:, None] + np.arange(3)).ravel()
-        vel = pos + 3
+        rows = self.landmark_rows(np.arange(self.n_landmarks))
+        pos, vel = rows[:, :3].ravel(), rows[:, 3:].ravel()
         P[:, pos] += tau * P[:, vel]  # Σ Fᵀ: column m_j += τ column v_j
         P[pos, :] += tau * P[vel, :]  # F (Σ Fᵀ): row m_j += τ row v_j
         P[vel, vel] += accel_var * tau * tau  # + Q
-        del n
 
     def is_finite(self) -> bool:
         n = self.dim
