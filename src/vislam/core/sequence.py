@@ -20,13 +20,14 @@ import numpy as np
 
 from vislam.core.camera import StereoCamera
 
-__all__ = ["StereoObservations", "Sequence", "MISSING_PIXEL"]
+__all__ = ["StereoObservations", "Sequence", "MISSING_PIXEL", "frozen_array"]
 
 #: Value of all four pixel coordinates where a landmark is not observed (dataset format).
 MISSING_PIXEL = -1.0
 
 
-def _frozen(a, dtype) -> np.ndarray:
+def frozen_array(a, dtype=None) -> np.ndarray:
+    """A read-only copy of ``a`` (optionally converted to ``dtype``)."""
     a = np.array(a, dtype=dtype, copy=True)
     a.setflags(write=False)
     return a
@@ -51,9 +52,9 @@ class StereoObservations:
     n_landmarks: int
 
     def __post_init__(self):
-        object.__setattr__(self, "frame_offsets", _frozen(self.frame_offsets, np.int64))
-        object.__setattr__(self, "landmark_ids", _frozen(self.landmark_ids, np.int64))
-        object.__setattr__(self, "pixels", _frozen(np.reshape(self.pixels, (-1, 4)), np.float64))
+        object.__setattr__(self, "frame_offsets", frozen_array(self.frame_offsets, np.int64))
+        object.__setattr__(self, "landmark_ids", frozen_array(self.landmark_ids, np.int64))
+        object.__setattr__(self, "pixels", frozen_array(np.reshape(self.pixels, (-1, 4)), np.float64))
         object.__setattr__(self, "n_landmarks", int(self.n_landmarks))
         n = self.landmark_ids.shape[0]
         if self.frame_offsets.ndim != 1 or self.frame_offsets.size < 1:
@@ -182,12 +183,12 @@ class Sequence:
     source: str = ""
 
     def __post_init__(self):
-        object.__setattr__(self, "timestamps_s", _frozen(np.ravel(self.timestamps_s), np.float64))
-        object.__setattr__(self, "linear_velocity_in_imu_mps", _frozen(self.linear_velocity_in_imu_mps, np.float64))
+        object.__setattr__(self, "timestamps_s", frozen_array(np.ravel(self.timestamps_s), np.float64))
+        object.__setattr__(self, "linear_velocity_in_imu_mps", frozen_array(self.linear_velocity_in_imu_mps, np.float64))
         object.__setattr__(
-            self, "angular_velocity_in_imu_radps", _frozen(self.angular_velocity_in_imu_radps, np.float64)
+            self, "angular_velocity_in_imu_radps", frozen_array(self.angular_velocity_in_imu_radps, np.float64)
         )
-        object.__setattr__(self, "cam_T_imu", _frozen(self.cam_T_imu, np.float64))
+        object.__setattr__(self, "cam_T_imu", frozen_array(self.cam_T_imu, np.float64))
         t = self.timestamps_s.shape[0]
         for name in ("linear_velocity_in_imu_mps", "angular_velocity_in_imu_radps"):
             if getattr(self, name).shape != (t, 3):

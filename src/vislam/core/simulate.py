@@ -74,7 +74,7 @@ import numpy as np
 
 from vislam.core.camera import StereoCamera
 from vislam.core.lie import se3_exp, se3_inverse
-from vislam.core.sequence import Sequence, StereoObservations
+from vislam.core.sequence import Sequence, StereoObservations, frozen_array
 from vislam.errors import ConfigError
 
 __all__ = [
@@ -322,12 +322,6 @@ class DriveStatistics:
         return dataclasses.asdict(self)
 
 
-def _frozen(a, dtype=None) -> np.ndarray:
-    a = np.array(a, dtype=dtype, copy=True)
-    a.setflags(write=False)
-    return a
-
-
 @dataclass(frozen=True, eq=False)
 class SimulatedDrive:
     """A simulated recording and its ground truth (all arrays read-only).
@@ -366,12 +360,12 @@ class SimulatedDrive:
     def __post_init__(self):
         for name in ("world_T_imu", "true_velocities", "p_lm_in_world", "landmark_velocity_in_world",
                      "observation_true_pixels"):
-            object.__setattr__(self, name, _frozen(getattr(self, name), np.float64))
+            object.__setattr__(self, name, frozen_array(getattr(self, name), np.float64))
         for name in ("landmark_is_moving", "observation_is_outlier"):
-            object.__setattr__(self, name, _frozen(getattr(self, name), bool))
-        object.__setattr__(self, "landmark_first_frame", _frozen(self.landmark_first_frame, np.int64))
-        object.__setattr__(self, "landmark_vehicle_id", _frozen(self.landmark_vehicle_id, np.int64))
-        object.__setattr__(self, "landmark_kind", _frozen(self.landmark_kind, np.int8))
+            object.__setattr__(self, name, frozen_array(getattr(self, name), bool))
+        object.__setattr__(self, "landmark_first_frame", frozen_array(self.landmark_first_frame, np.int64))
+        object.__setattr__(self, "landmark_vehicle_id", frozen_array(self.landmark_vehicle_id, np.int64))
+        object.__setattr__(self, "landmark_kind", frozen_array(self.landmark_kind, np.int8))
 
     @property
     def n_frames(self) -> int:
