@@ -64,6 +64,10 @@ TARGETS = {
     #: growth of the filter's working memory (peak during the filter minus the RSS before
     #: it, minus the bytes of the result it returns) from 1x to 16x, allowed for allocator noise
     "scaling_working_memory_growth_mb_max": 10.0,
+    #: growth from 1x to 16x of the most bytes the filter holds at once besides the result
+    #: it is building (tracemalloc peak minus the result's bytes): allocator-independent, so
+    #: a tighter limit; what remains depends on the landmarks in view, not on the frames
+    "scaling_traced_working_memory_growth_mb_max": 5.0,
 }
 
 # ----------------------------------------------------------------------------- child programs
@@ -88,7 +92,7 @@ Path(out, "summary.json").write_text(json.dumps({"mode": mode, "stats": result.s
 
 #: One point of the scaling series (argv: n_frames velocity_noise angular_noise); prints one JSON line.
 SCALING_CHILD = r"""
-import ctypes, gc, json, resource, sys, time
+import ctypes, gc, json, resource, sys, time, tracemalloc
 from vislam.core import estimators
 from vislam.core.options import FilterOptions
 from vislam.core.simulate import SimulationOptions, simulate_drive
@@ -128,18 +132,36 @@ t1 = time.perf_counter()
 result = estimators.run(seq, "slam", FilterOptions(velocity_noise_mps=vn, angular_noise_radps=an))
 wall_filter = time.perf_counter() - t1
 after = status_mb()
-lm = result.landmarks
-result_bytes = result.world_T_imu.nbytes + result.pose_covariance.nbytes + result.stats.frame_seconds.nbytes
-if lm is not None:
-    result_bytes += sum(a.nbytes for a in (lm.ids, lm.track, lm.p_lm_in_world, lm.covariance, lm.n_observations,
-                                           lm.n_gated, lm.first_frame, lm.last_frame, lm.status, lm.v_lm_in_world))
+def nbytes(result):
+    lm = result.landmarks
+    n = result.world_T_imu.nbytes + result.pose_covariance.nbytes + result.stats.frame_seconds.nbytes
+    if lm is not None:
+        n += sum(a.nbytes for a in (lm.ids, lm.track, lm.p_lm_in_world, lm.covariance, lm.n_observations,
+                                    lm.n_gated, lm.first_frame, lm.last_frame, lm.status, lm.v_lm_in_world))
+    return n
+
+result_bytes = nbytes(result)
+stats = result.stats.to_dict()
+partial = bool(result.partial)
+del result
+trim()
+# The same run again under tracemalloc (numpy reports its buffers to it): the peak of the
+# bytes the filter holds at once, independent of the allocator's page reuse. Not timed.
+tracemalloc.start()
+traced = estimators.run(seq, "slam", FilterOptions(velocity_noise_mps=vn, angular_noise_radps=an))
+traced_peak = tracemalloc.get_traced_memory()[1]
+tracemalloc.stop()
+traced_result = nbytes(traced)
+del traced
 ts = seq.timestamps_s
 print(json.dumps({
     "frames": n, "duration_s": float(ts[-1] - ts[0]), "landmarks": int(seq.n_landmarks),
-    "observations": int(seq.observations.n_observations), "simulate_seconds": simulate_s,
+    "observations": int(seq.observations.n_observations),
+    "max_observations_per_frame": int(seq.observations.counts_per_frame().max()), "simulate_seconds": simulate_s,
     "filter_wall_seconds": wall_filter, "peak_rss_simulation_mb": peak_sim, "rss_before_filter_mb": rss_before,
     "hwm_reset": reset, "peak_rss_filter_mb": after["VmHWM"] if reset else None, "rss_after_filter_mb": after["VmRSS"],
-    "result_mb": result_bytes / 2**20, "partial": bool(result.partial), "stats": result.stats.to_dict(),
+    "result_mb": result_bytes / 2**20, "traced_peak_mb": traced_peak / 2**20,
+    "traced_working_mb": (traced_peak - traced_result) / 2**20, "partial": partial, "stats": stats,
 }))
 """
 
@@ -368,7 +390,10 @@ def bench_scaling(n_frames: int, repeat: int) -> dict:
         "filter_memory_mb": best(ok, "filter_memory_mb", max),
         "result_mb": best(ok, "result_mb", max),
         "working_memory_mb": best(ok, "working_memory_mb", max),
+        "traced_peak_mb": best(ok, "traced_peak_mb", max),
+        "traced_working_mb": best(ok, "traced_working_mb", max),
         "max_state_landmarks": best(ok, "max_state_landmarks", max),
+        "max_observations_per_frame": first.get("max_observations_per_frame"),
         "ok": len(ok) == len(attempts),
         "attempts": attempts,
     }
@@ -395,7 +420,8 @@ COLUMNS = (("dataset", "dataset", "s"), ("mode", "mode", "s"), ("frames", "frame
            ("p95", "frame_ms_p95", ".3f"), ("peak RSS MB", "peak_rss_mb", ".0f"))
 
 SCALING_COLUMNS = (("frames", "frames", "d"), ("duration s", "duration_s", ".0f"), ("landmarks", "landmarks", "d"),
-                   ("observations", "observations", "d"), ("max in state", "max_state_landmarks", "d"),
+                   ("observations", "observations", "d"), ("max obs/frame", "max_observations_per_frame", "d"),
+                   ("max in state", "max_state_landmarks", "d"),
                    ("simulate s", "simulate_seconds", ".1f"), ("filter s", "filter_seconds", ".2f"),
                    ("run() wall s", "run_wall_seconds", ".2f"), ("ms/frame med", "frame_ms_median", ".3f"),
                    ("p95", "frame_ms_p95", ".3f"),
@@ -403,7 +429,8 @@ SCALING_COLUMNS = (("frames", "frames", "d"), ("duration s", "duration_s", ".0f"
                    ("RSS before filter MB", "rss_before_filter_mb", ".0f"),
                    ("peak RSS filter MB", "peak_rss_filter_mb", ".0f"),
                    ("filter +MB", "filter_memory_mb", ".1f"), ("result MB", "result_mb", ".1f"),
-                   ("working MB", "working_memory_mb", ".1f"))
+                   ("working MB", "working_memory_mb", ".1f"), ("traced peak MB", "traced_peak_mb", ".1f"),
+                   ("traced working MB", "traced_working_mb", ".1f"))
 
 
 def markdown_table(rows: list[dict], columns) -> str:
@@ -449,6 +476,12 @@ def evaluate_targets(rows: list[dict], scaling: list[dict]) -> list[dict]:
                 detail=f"peak filter RSS {lo['peak_rss_filter_mb']:.0f} -> {hi['peak_rss_filter_mb']:.0f} MB "
                        f"(x{hi['peak_rss_filter_mb'] / lo['peak_rss_filter_mb']:.2f}); max landmarks in state "
                        f"{lo['max_state_landmarks']} -> {hi['max_state_landmarks']}")
+        if lo.get("traced_working_mb") is not None and hi.get("traced_working_mb") is not None:
+            growth = hi["traced_working_mb"] - lo["traced_working_mb"]
+            add("scaling: filter working memory flat, traced (growth 1x->16x <= 5 MB)", growth,
+                TARGETS["scaling_traced_working_memory_growth_mb_max"],
+                detail=f"traced working memory {lo['traced_working_mb']:.1f} -> {hi['traced_working_mb']:.1f} MB "
+                       f"while the result grows {lo['result_mb']:.1f} -> {hi['result_mb']:.1f} MB")
     for r in rows:  # localization and mapping faster than SLAM on the same data
         if r["mode"] == "slam":
             continue

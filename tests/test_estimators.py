@@ -189,14 +189,14 @@ def _state_after_one_step(drive, opts):
     observations of landmarks in the state: (sequence, model, state, slots, z)."""
     seq = drive.sequence
     model = StereoModel(seq.camera, seq.cam_T_imu)
-    state = SlamState(np.eye(4), np.zeros((6, 6)), seq.n_landmarks)
+    state = SlamState(np.eye(4), np.zeros((6, 6)))
     ids, z = seq.observations.frame(0)
     ok = initialization_guard(seq.camera, z, opts)
     slam_initialize_landmarks(state, model, ids[ok], z[ok], opts.V)
     tau, u = motion_increments(seq)
     predict_state(state, tau[0], u[0], opts.W)
     ids, z = seq.observations.frame(1)
-    slots = state.slot_of[ids]
+    slots = state.slots_of(ids)
     return seq, model, state, slots[slots >= 0], z[slots >= 0]
 
 

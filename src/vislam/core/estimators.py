@@ -39,10 +39,11 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
 from vislam.core.lie import se3_adjoint, se3_inverse
 from vislam.core.options import MODES, FilterOptions
 from vislam.core.propagation import dead_reckoning, motion_increments, predict_state
-from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunResult, RunStats
+from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, RunResult, RunStats
 from vislam.core.sequence import Sequence
 from vislam.core.state import SlamState
 from vislam.core.updaters import (
@@ -107,186 +108,75 @@ def run_localization(sequence: Sequence, options: FilterOptions | None = None, p
 # ----------------------------------------------------------------------------- shared pieces
 
 
-class _RepeatDetector:
-    """Flags, frame by frame, observations whose four pixels repeat the same landmark's
-    observation in the previous frame bit for bit (see
-    :meth:`vislam.core.sequence.StereoObservations.repeated_mask`, which is the same test
-    over a whole sequence). Memory: one pixel row per landmark id."""
-
-    def __init__(self, M: int, options: FilterOptions, stats: RunStats):
-        self.enabled = options.repeated_observations != "use"
-        self.px = np.zeros((M, 4))
-        self.frame = np.full(M, -2, dtype=np.int64)
-        self.stats = stats
-
-    def __call__(self, t: int, ids: np.ndarray, z: np.ndarray) -> np.ndarray:
-        if not self.enabled:
-            return np.zeros(ids.size, dtype=bool)
-        rep = (self.frame[ids] == t - 1) & np.all(self.px[ids] == z, axis=1)
-        self.px[ids] = z
-        self.frame[ids] = t
-        self.stats.observations_repeated += int(rep.sum())
-        return rep
-
-
-class _MapBuilder:
-    """Collects frozen landmark entries (marginalized, rejected or final) in fixed-size
-    chunks of columns: no per-entry small arrays, no doubling slack, and :meth:`build`
-    frees each column's chunks as soon as its sorted copy exists."""
-
-    _COLUMNS = {"ids": ((), np.int64), "track": ((), np.int64), "p": ((3,), np.float64),
-                "cov": ((3, 3), np.float64), "nobs": ((), np.int64), "ngated": ((), np.int64),
-                "first": ((), np.int64), "last": ((), np.int64), "status": ((), np.uint8),
-                "v": ((3,), np.float64)}
-    CHUNK = 4096
-
-    def __init__(self):
-        self.n = 0
-        self._chunks: list[dict[str, np.ndarray]] = []
-
-    def _new_chunk(self) -> dict[str, np.ndarray]:
-        chunk = {k: np.zeros((self.CHUNK,) + shape, dtype=dt) for k, (shape, dt) in self._COLUMNS.items()}
-        self._chunks.append(chunk)
-        return chunk
-
-    def add(self, ids, track, p, cov, nobs, ngated, first, last, status, v=None) -> None:
-        k = int(np.size(ids))
-        values = {"ids": ids, "track": track, "p": np.reshape(p, (k, 3)), "cov": np.reshape(cov, (k, 3, 3)),
-                  "nobs": nobs, "ngated": ngated, "first": first, "last": last,
-                  "status": np.broadcast_to(status, (k,)), "v": np.zeros((k, 3)) if v is None else np.reshape(v, (k, 3))}
-        done = 0
-        while done < k:
-            offset = self.n % self.CHUNK
-            chunk = self._chunks[-1] if offset else self._new_chunk()
-            m = min(k - done, self.CHUNK - offset)
-            for key, value in values.items():
-                chunk[key][offset:offset + m] = value[done:done + m] if np.ndim(value) else value
-            done += m
-            self.n += m
-
-    def build(self) -> LandmarkMap:
-        """The map sorted by (id, track); each column's chunks are released once its
-        sorted copy exists."""
-        n = self.n
-
-        def column(key: str) -> np.ndarray:
-            shape, dt = self._COLUMNS[key]
-            parts = [c.pop(key) for c in self._chunks]
-            return np.concatenate(parts)[:n] if parts else np.zeros((0,) + shape, dtype=dt)
-
-        ids, track = column("ids"), column("track")
-        order = np.lexsort((track, ids))
-        out = {"ids": ids[order], "track": track[order]}
-        del ids, track
-        for key in self._COLUMNS:
-            if key not in out:
-                out[key] = column(key)[order]
-        self._chunks, self.n = [], 0
-        return LandmarkMap(ids=out["ids"], track=out["track"], p_lm_in_world=out["p"], covariance=out["cov"],
-                           n_observations=out["nobs"], n_gated=out["ngated"], first_frame=out["first"],
-                           last_frame=out["last"], status=out["status"], v_lm_in_world=out["v"])
-
-
-class _Tracks:
-    """Per-landmark bookkeeping by dataset id: counts, first/last frames, rejection."""
-
-    def __init__(self, M: int):
-        self.track_count = np.zeros(M, dtype=np.int64)  # tracks started so far
-        self.rejected = np.zeros(M, dtype=bool)
-        self.nobs = np.zeros(M, dtype=np.int64)
-        self.ngated = np.zeros(M, dtype=np.int64)
-        self.consecutive = np.zeros(M, dtype=np.int64)
-        self.first = np.full(M, -1, dtype=np.int64)
-        self.last = np.full(M, -1, dtype=np.int64)
-
-    def started(self, ids: np.ndarray, t: int) -> None:
-        self.track_count[ids] += 1
-        self.nobs[ids] = 1
-        self.ngated[ids] = 0
-        self.consecutive[ids] = 0
-        self.first[ids] = t
-        self.last[ids] = t
-
-    def updated(self, ids: np.ndarray, ok: np.ndarray, t: int, stats: RunStats, max_consecutive: int) -> np.ndarray:
-        """Record the gate outcome of one observation per id; return the ids to reject."""
-        self.nobs[ids[ok]] += 1
-        self.last[ids[ok]] = t
-        self.ngated[ids[~ok]] += 1
-        self.consecutive[ids[ok]] = 0
-        self.consecutive[ids[~ok]] += 1
-        stats.observations_used += int(ok.sum())
-        stats.observations_gated += int((~ok).sum())
-        if not max_consecutive:
-            return ids[:0]
-        bad = ids[self.consecutive[ids] >= max_consecutive]
-        self.rejected[bad] = True
-        stats.landmarks_rejected += int(bad.size)
-        return bad
-
-    def entry(self, ids: np.ndarray) -> tuple:
-        return self.track_count[ids] - 1, self.nobs[ids], self.ngated[ids], self.first[ids], self.last[ids]
-
-
 class _PendingLandmarks:
     """Delayed SLAM initialization (``options.init_frames``): a landmark waits until it
     has been seen in that many consecutive frames, then its first and latest
-    observations must agree with a static point (:func:`static_consistency_nis`)."""
+    observations must agree with a static point (:func:`static_consistency_nis`).
+    Memory: one row per landmark waiting in view."""
 
-    def __init__(self, M: int, options: FilterOptions, model: StereoModel, tau: np.ndarray, tracks: _Tracks,
-                 builder: _MapBuilder):
+    def __init__(self, options: FilterOptions, model: StereoModel, tau: np.ndarray, tracks: TrackTable,
+                 builder: MapBuilder):
         self.n = options.init_frames
         self.options = options
         self.model = model
         self.tau = tau
         self.tracks = tracks
         self.builder = builder
-        m = M if self.n > 1 else 0  # no per-landmark memory when initializing at once
-        self.start = np.full(m, -1, dtype=np.int64)  # first frame of the waiting window
-        self.last = np.full(m, -2, dtype=np.int64)  # last frame seen while waiting
-        self.pixels = np.zeros((m, 4))
-        self.failures = np.zeros(m, dtype=np.int64)
+        # start: first frame of the waiting window; last: last frame seen while waiting
+        self.waiting = IdTable({"start": ((), np.int64, -1), "last": ((), np.int64, -2),
+                                "pixels": ((4,), np.float64, 0.0), "failures": ((), np.int64, 0)}, capacity=16)
+
+    def forget_unseen(self, ids_seen: np.ndarray) -> None:
+        """Landmarks out of view stop waiting (seen again, they start over)."""
+        if self.n > 1 and len(self.waiting):
+            ids = self.waiting.ids
+            self.waiting.remove(ids[~in_sorted(ids, ids_seen)])
 
     def admit(self, ids: np.ndarray, z: np.ndarray, t: int, imu_T_world: np.ndarray, means: np.ndarray,
               stats: RunStats):
         """Return the (ids, pixels) to initialize now among candidates observed at t."""
         if self.n <= 1:
             return ids, z
-        restart = self.last[ids] != t - 1
-        self.start[ids[restart]] = t
-        self.pixels[ids[restart]] = z[restart]
-        self.last[ids] = t
-        ready = ~restart & (t - self.start[ids] + 1 >= self.n)
+        w = self.waiting
+        rows = w.rows(ids)
+        w.add(ids[rows < 0])
+        rows = w.rows(ids)
+        start, last, pixels, failures = w["start"], w["last"], w["pixels"], w["failures"]
+        restart = last[rows] != t - 1
+        start[rows[restart]] = t
+        pixels[rows[restart]] = z[restart]
+        last[rows] = t
+        ready = ~restart & (t - start[rows] + 1 >= self.n)
         if not np.any(ready):
             return ids[:0], z[:0]
-        r_ids, r_z = ids[ready], z[ready]
-        t0 = self.start[r_ids]
+        r_ids, r_z, r_rows = ids[ready], z[ready], rows[ready]
+        t0 = start[r_rows]
         steps = np.cumsum(np.concatenate([[0.0], self.tau**2]))
         opts = self.options
         nis = np.empty(r_ids.size)
         for f0 in np.unique(t0):  # usually one start frame per batch
             sel = t0 == f0
             Q = (steps[t] - steps[f0]) * opts.W  # Σ τ² W between the two frames
-            nis[sel] = static_consistency_nis(self.model, imu_T_world, r_z[sel], means[f0], self.pixels[r_ids[sel]],
+            nis[sel] = static_consistency_nis(self.model, imu_T_world, r_z[sel], means[f0], pixels[r_rows[sel]],
                                               opts.V, Q)
         ok = nis <= opts.gate_threshold
-        bad_ids = r_ids[~ok]
-        if bad_ids.size:
-            self.failures[bad_ids] += 1
-            stats.observations_gated += int(bad_ids.size)
+        bad_rows = r_rows[~ok]
+        if bad_rows.size:
+            failures[bad_rows] += 1
+            stats.observations_gated += int(bad_rows.size)
             # try again from the latest observation; a second failure rejects the landmark
-            self.start[bad_ids] = t
-            self.pixels[bad_ids] = r_z[~ok]
-            out = bad_ids[self.failures[bad_ids] >= 2]
-            if out.size:
-                self.tracks.rejected[out] = True
-                self.tracks.started(out, t)
+            start[bad_rows] = t
+            pixels[bad_rows] = r_z[~ok]
+            out_sel = ~ok & (failures[r_rows] >= 2)
+            if np.any(out_sel):
+                out = r_ids[out_sel]
+                w.remove(out)
+                rows_out = self.tracks.started(out, t)
+                self.tracks["rejected"][rows_out] = True
                 stats.landmarks_rejected += int(out.size)
-                sel = np.isin(r_ids, out)
-                p_w, cov = mapping_initialize(self.model, imu_T_world, r_z[sel], opts.V)
-                self.builder.add(out, *self.tracks.entry(out)[:1], p_w, cov, *self.tracks.entry(out)[1:],
-                                 LANDMARK_REJECTED)
-        self.start[r_ids[ok]] = -1
-        self.last[r_ids[ok]] = -2
+                p_w, cov = mapping_initialize(self.model, imu_T_world, r_z[out_sel], opts.V)
+                self.builder.add(out, p_w, cov, *self.tracks.entry(out), LANDMARK_REJECTED)
+        w.remove(r_ids[ok])
         return r_ids[ok], r_z[ok]
 
 
@@ -298,7 +188,9 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
     """Landmark mapping with known poses (by default the localization trajectory).
 
     Landmarks are independent given the poses, so each keeps its own 3x3 covariance —
-    the exact block-diagonal equivalent of the report's 3M x 3M Σ.
+    the exact block-diagonal equivalent of the report's 3M x 3M Σ. A landmark's track
+    ends when it is not observed in a frame: its estimate enters the map then (seen
+    again, it starts a new track), so memory follows the landmarks in view.
     """
     options = options or FilterOptions()
     T = sequence.n_frames
@@ -315,40 +207,52 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
     model = StereoModel(sequence.camera, sequence.cam_T_imu)
     V = options.V
     gate = options.gate_threshold
-    M = sequence.n_landmarks
-    mean = np.zeros((M, 3))
-    cov = np.zeros((M, 3, 3))
-    active = np.zeros(M, dtype=bool)  # has a current estimate
-    tracks = _Tracks(M)
-    builder = _MapBuilder()
+    # one row per track in progress, with its estimate; a track ends (its landmark is
+    # frozen into the map) when the landmark is not observed in a frame
+    tracks = TrackTable({"mean": ((3,), np.float64, 0.0), "cov": ((3, 3), np.float64, 0.0)})
+    builder = MapBuilder()
     stats = RunStats(frames=T, observations_total=sequence.observations.n_observations)
     obs = sequence.observations
-    repeated = _RepeatDetector(M, options, stats)
+    repeated = RepeatDetector(options.repeated_observations != "use", stats)
     split = options.repeated_observations == "split"
     frame_seconds = np.zeros(T)
     frame_seconds[0] = time.perf_counter() - t_start
 
+    def active(ids: np.ndarray) -> np.ndarray:
+        """Has a current estimate: a track in progress that is not rejected."""
+        rows = tracks.rows(ids)
+        return (rows >= 0) & ~tracks["rejected"][np.maximum(rows, 0)]
+
     def freeze(ids: np.ndarray, status: int) -> None:
+        """Enter the tracks of ``ids`` into the map; a rejected track stays (flagged)
+        while its landmark is in view, so that its observations keep being ignored."""
         if ids.size:
-            builder.add(ids, *tracks.entry(ids)[:1], mean[ids], cov[ids], *tracks.entry(ids)[1:], status)
-            active[ids] = False
+            rows = tracks.rows(ids)
+            builder.add(ids, tracks["mean"][rows], tracks["cov"][rows], *tracks.entry(ids), status)
+            if status != LANDMARK_REJECTED:
+                tracks.remove(ids)
 
     for t in range(T):
         tic = time.perf_counter()
-        ids, z = obs.frame(t)
-        rep = repeated(t, ids, z)
-        if split and np.any(rep & active[ids]):
-            freeze(ids[rep & active[ids]], LANDMARK_OK)  # the track ends; the repeat starts a new one
+        ids_seen, z = obs.frame(t)
+        rep = repeated(t, ids_seen, z)
+        if split and np.any(rep & active(ids_seen)):
+            freeze(ids_seen[rep & active(ids_seen)], LANDMARK_OK)  # the track ends; the repeat starts a new one
             rep = np.zeros_like(rep)
-        keep = ~rep & ~tracks.rejected[ids]
-        ids, z = ids[keep], z[keep]
-        upd = active[ids]
+        keep = ~rep & ~tracks.is_rejected(ids_seen)
+        ids, z = ids_seen[keep], z[keep]
+        upd = active(ids)
         if np.any(upd):
             u_ids = ids[upd]
-            mean[u_ids], cov[u_ids], ok, _ = mapping_update(model, imu_T_world[t], mean[u_ids], cov[u_ids], z[upd],
-                                                             V, gate)
+            rows = tracks.rows(u_ids)
+            tracks["mean"][rows], tracks["cov"][rows], ok, _ = mapping_update(
+                model, imu_T_world[t], tracks["mean"][rows], tracks["cov"][rows], z[upd], V, gate)
             bad = tracks.updated(u_ids, ok, t, stats, options.max_consecutive_gated)
             freeze(bad, LANDMARK_REJECTED)
+        # tracks whose landmark is out of view end (a skipped repeat keeps its track alive)
+        ended = tracks.ids[~in_sorted(tracks.ids, ids_seen)]
+        freeze(ended[active(ended)], LANDMARK_OK)
+        tracks.end_unseen_rejections(ids_seen)
         new = ~upd
         if np.any(new):
             c_ids, c_z = ids[new], z[new]
@@ -356,15 +260,15 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
             stats.observations_not_initialized += int((~good).sum())
             if np.any(good):
                 g_ids = c_ids[good]
-                mean[g_ids], cov[g_ids] = mapping_initialize(model, imu_T_world[t], c_z[good], V)
-                active[g_ids] = True
-                tracks.started(g_ids, t)
+                rows = tracks.started(g_ids, t)
+                tracks["mean"][rows], tracks["cov"][rows] = mapping_initialize(model, imu_T_world[t], c_z[good], V)
                 stats.landmarks_initialized += int(g_ids.size)
                 stats.observations_used += int(g_ids.size)
         frame_seconds[t] += time.perf_counter() - tic
         if progress:
             progress(t + 1)
-    freeze(np.nonzero(active)[0], LANDMARK_OK)
+    remaining = tracks.ids
+    freeze(remaining[active(remaining)], LANDMARK_OK)
     stats.frames_processed = T
     stats.frame_seconds = frame_seconds
     return RunResult("mapping", sequence.name, sequence.timestamps_s.copy(), world_T_imu, pose_cov, builder.build(),
@@ -383,7 +287,6 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
     """
     options = options or FilterOptions()
     T = sequence.n_frames
-    M = sequence.n_landmarks
     model = StereoModel(sequence.camera, sequence.cam_T_imu)
     V, W = options.V, options.W
     gate = options.gate_threshold
@@ -392,25 +295,22 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
     update = slam_update_reference if reference else slam_update
 
     motion = options.landmark_motion
-    state = SlamState(np.eye(4), options.initial_pose_covariance, n_ids=M, lm_dim=6 if motion else 3)
+    state = SlamState(np.eye(4), options.initial_pose_covariance, lm_dim=6 if motion else 3)
     velocity_var = options.landmark_velocity_std_mps**2
     accel_var = options.landmark_acceleration_std_mps2**2
-    tracks = _Tracks(M)
-    builder = _MapBuilder()
+    drift_gate = options.drift_threshold
+    # one row per track in progress; the drift test's per-landmark sums live there too
+    tracks = TrackTable({"drift_sum": ((4,), np.float64, 0.0), "drift_n": ((), np.float64, 0.0)})
+    builder = MapBuilder()
     means = np.zeros((T, 4, 4))
     covs = np.zeros((T, 6, 6))
     stats = RunStats(frames=T, observations_total=sequence.observations.n_observations)
     frame_seconds = np.zeros(T)
     obs = sequence.observations
-    repeated = _RepeatDetector(M, options, stats)
+    repeated = RepeatDetector(options.repeated_observations != "use", stats)
     split = options.repeated_observations == "split"
-    seen = np.zeros(M, dtype=bool)
     last_correction = np.zeros(6)  # pose correction of the previous update (OC transition)
-    pending = _PendingLandmarks(M, options, model, tau, tracks, builder)
-    drift_gate = options.drift_threshold
-    m_drift = M if drift_gate < np.inf else 0
-    drift_sum = np.zeros((m_drift, 4))  # per landmark: Σ of whitened innovations and their count
-    drift_n = np.zeros(m_drift)
+    pending = _PendingLandmarks(options, model, tau, tracks, builder)
     error = None
     done = 0
 
@@ -418,10 +318,11 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
         if slots.size == 0:
             return
         ids = state.landmark_ids[slots]
-        track, nobs, ngated, first, last = tracks.entry(ids)
-        builder.add(ids, track, state.p_lm_in_world[slots], state.landmark_cov(slots), nobs, ngated, first, last,
-                    status, state.v_lm_in_world[slots])
+        builder.add(ids, state.p_lm_in_world[slots], state.landmark_cov(slots), *tracks.entry(ids), status,
+                    state.v_lm_in_world[slots])
         state.remove_slots(slots)
+        if status != LANDMARK_REJECTED:  # a rejected track stays (flagged) while in view
+            tracks.remove(ids)
 
     for t in range(T):
         tic = time.perf_counter()
@@ -440,19 +341,20 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                 ids_seen, z = obs.frame(t)
                 rep = repeated(t, ids_seen, z)
                 if split and np.any(rep):
-                    slots_rep = state.slot_of[ids_seen[rep]]
+                    slots_rep = state.slots_of(ids_seen[rep])
                     freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one
                     rep = np.zeros_like(rep)
-                usable = ~rep & ~tracks.rejected[ids_seen]
+                usable = ~rep & ~tracks.is_rejected(ids_seen)
                 ids, z = ids_seen[usable], z[usable]
-                slot_arr = state.slot_of[ids]
+                slot_arr = state.slots_of(ids)
                 live = slot_arr >= 0
                 # ---- 2. update with the landmarks in the state
                 if np.any(live):
                     slots, lids = slot_arr[live], ids[live]
                     r, Hp, Hl, in_front, nis, blocks = slam_predict_nis(state, model, slots, z[live], V, N_pose)
                     ok = in_front & (nis <= gate)
-                    young = tracks.nobs[lids] <= options.probation_frames  # init counts as 1
+                    rows = tracks.rows(lids)
+                    young = tracks["nobs"][rows] <= options.probation_frames  # init counts as 1
                     joint = ok & ~young
                     if drift_gate < np.inf and np.any(ok):
                         Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
@@ -462,15 +364,16 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                         # a static landmark's whitened residuals are white, so Σ w / √k ~
                         # N(0, I₄); a point on a moving vehicle drifts one way
                         w = np.linalg.solve(Lt, (r - Ht @ correction)[:, :, None])[:, :, 0]
-                        drift_sum[lids] += np.where(ok[:, None], w, 0.0)
-                        drift_n[lids] += ok
-                        stat = np.einsum("ki,ki->k", drift_sum[lids], drift_sum[lids]) / np.maximum(drift_n[lids], 1)
-                        moving = ok & (drift_n[lids] >= 2) & (stat > drift_gate)
+                        drift_sum, drift_n = tracks["drift_sum"], tracks["drift_n"]
+                        drift_sum[rows] += np.where(ok[:, None], w, 0.0)
+                        drift_n[rows] += ok
+                        stat = np.einsum("ki,ki->k", drift_sum[rows], drift_sum[rows]) / np.maximum(drift_n[rows], 1)
+                        moving = ok & (drift_n[rows] >= 2) & (stat > drift_gate)
                         if np.any(moving):
                             stats.landmarks_moving += int(moving.sum())
                             ok &= ~moving
                             # rejected at once (below): it moves
-                            tracks.consecutive[lids[moving]] = max(options.max_consecutive_gated, 1) - 1
+                            tracks["consecutive"][rows[moving]] = max(options.max_consecutive_gated, 1) - 1
                     probe = ok & young
                     if np.any(probe):
                         # slots are unchanged by the joint update; re-linearize at the new pose
@@ -478,12 +381,13 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                         schmidt_update(state, slots[probe], r2, Hp2, Hl2, V)
                     # ---- 3. reject landmarks that keep failing the gate
                     bad = tracks.updated(lids, ok, t, stats, options.max_consecutive_gated)
-                    freeze(state.slot_of[bad], LANDMARK_REJECTED)
+                    freeze(state.slots_of(bad), LANDMARK_REJECTED)
                 # ---- 4. marginalize landmarks whose track ended
                 if not options.keep_all_landmarks and state.n_landmarks:
-                    seen[ids_seen] = True  # a skipped repeat keeps its track alive
-                    freeze(np.nonzero(~seen[state.landmark_ids])[0], LANDMARK_OK)
-                    seen[ids_seen] = False
+                    # a skipped repeat keeps its track alive
+                    freeze(np.flatnonzero(~in_sorted(state.landmark_ids, ids_seen)), LANDMARK_OK)
+                tracks.end_unseen_rejections(ids_seen)
+                pending.forget_unseen(ids_seen)
                 # ---- 5. initialize new landmarks
                 new = ~live
                 if np.any(new):
@@ -495,9 +399,6 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                         if g_ids.size:
                             slam_initialize_landmarks(state, model, g_ids, g_z, V, N_pose, velocity_var)
                             tracks.started(g_ids, t)
-                            if m_drift:
-                                drift_sum[g_ids] = 0.0
-                                drift_n[g_ids] = 0
                             stats.landmarks_initialized += int(g_ids.size)
                             stats.observations_used += int(g_ids.size)
                 if oc:

@@ -65,6 +65,12 @@ class StereoObservations:
             raise ValueError("pixels and landmark_ids differ in length")
         if n and (self.landmark_ids.min() < 0 or self.landmark_ids.max() >= self.n_landmarks):
             raise ValueError("landmark_ids out of range [0, n_landmarks)")
+        if n > 1:
+            same_frame = np.ones(n - 1, dtype=bool)
+            inner = self.frame_offsets[1:-1]
+            same_frame[inner[(inner > 0) & (inner < n)] - 1] = False
+            if np.any(same_frame & (np.diff(self.landmark_ids) <= 0)):
+                raise ValueError("landmark_ids must be strictly increasing within each frame")
 
     @property
     def n_frames(self) -> int:

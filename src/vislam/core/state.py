@@ -11,8 +11,9 @@ Variables (the report's):
 Covariance layout: one symmetric matrix Σ of size ``n = 6 + d L`` for ``L`` landmarks of
 ``d = lm_dim`` (3, or 6 with velocities) dimensions, the pose block first (rows 0:6),
 then landmark *slot* ``s`` at rows ``6 + d s : 6 + d (s + 1)`` (position first).
-Σ lives in a preallocated buffer with slack (it grows by doubling and is compacted in
-place when landmarks leave), so steady-state frames allocate no new covariance.
+Σ lives in a preallocated buffer with slack (it grows by 25 % when more landmarks are in
+view than ever before, and is compacted in place when landmarks leave), so steady-state
+frames allocate no new covariance and its size follows the landmarks in view.
 """
 
 from __future__ import annotations
@@ -28,8 +29,11 @@ LM_DIM = 3
 class SlamState:
     """Means, covariance and the index of each landmark block."""
 
-    def __init__(self, imu_T_world: np.ndarray, pose_covariance: np.ndarray, n_ids: int,
-                 capacity_landmarks: int = 64, lm_dim: int = LM_DIM):
+    #: Factor by which the covariance buffer grows when it is full.
+    GROWTH = 1.25
+
+    def __init__(self, imu_T_world: np.ndarray, pose_covariance: np.ndarray, capacity_landmarks: int = 64,
+                 lm_dim: int = LM_DIM):
         if lm_dim not in (3, 6):
             raise ValueError("lm_dim must be 3 (position) or 6 (position and velocity)")
         self.lm_dim = lm_dim
@@ -47,8 +51,9 @@ class SlamState:
         #: (L, d, 6) block of each landmark in the unobservable directions (the global
         #: gauge) of the linearized system, used by the observability-constrained update.
         self.lm_null = np.zeros((0, lm_dim, 6))
-        #: (n_ids,) slot of each dataset id, -1 when not in the state.
-        self.slot_of = np.full(int(n_ids), -1, dtype=np.int64)
+        # landmark_ids sorted, and the slot of each: the index behind slots_of()
+        self._sorted_ids = np.zeros(0, dtype=np.int64)
+        self._sorted_slots = np.zeros(0, dtype=np.int64)
 
     # --- sizes and views -------------------------------------------------------------
     @property
@@ -73,11 +78,25 @@ class SlamState:
         """(k, d) covariance row indices of the given slots (position rows first)."""
         return POSE_DIM + self.lm_dim * np.asarray(slots, dtype=np.int64)[:, None] + np.arange(self.lm_dim)
 
+    def slots_of(self, ids: np.ndarray) -> np.ndarray:
+        """Slot of each dataset id, −1 for ids not in the state (a binary search in the
+        live ids: no memory per dataset id)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        if self._sorted_ids.size == 0:
+            return np.full(ids.shape, -1, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(self._sorted_ids, ids), self._sorted_ids.size - 1)
+        return np.where(self._sorted_ids[pos] == ids, self._sorted_slots[pos], -1)
+
     # --- structural changes ----------------------------------------------------------
+    def _reindex(self) -> None:
+        order = np.argsort(self.landmark_ids, kind="stable")
+        self._sorted_ids = self.landmark_ids[order]
+        self._sorted_slots = order
+
     def _ensure_capacity(self, dim: int) -> None:
         if dim <= self.capacity:
             return
-        new_cap = max(dim, 2 * self.capacity)
+        new_cap = max(dim, int(np.ceil(self.GROWTH * self.capacity)))
         n = self.dim
         buf = np.zeros((new_cap, new_cap))
         buf[:n, :n] = self._buffer[:n, :n]
@@ -111,8 +130,8 @@ class SlamState:
             null_blocks = np.zeros((k, self.lm_dim, 6))
         self.lm_null = np.concatenate([self.lm_null,
                                        np.asarray(null_blocks, dtype=np.float64).reshape(k, self.lm_dim, 6)])
-        self.slot_of[np.asarray(ids, dtype=np.int64)] = slots
         self.n_landmarks += k
+        self._reindex()
         return slots
 
     def remove_slots(self, slots: np.ndarray) -> None:
@@ -131,13 +150,12 @@ class SlamState:
         n = self.dim
         # Compact in place: Σ' = Σ[keep, keep] (the fancy index makes a copy first).
         self._buffer[:m, :m] = self._buffer[:n, :n][np.ix_(keep_rows, keep_rows)]
-        self.slot_of[self.landmark_ids[~keep_slot]] = -1
         self.landmark_ids = self.landmark_ids[keep_slot]
         self.p_lm_in_world = self.p_lm_in_world[keep_slot]
         self.v_lm_in_world = self.v_lm_in_world[keep_slot]
         self.lm_null = self.lm_null[keep_slot]
         self.n_landmarks = int(keep_slot.sum())
-        self.slot_of[self.landmark_ids] = np.arange(self.n_landmarks)
+        self._reindex()
 
     def landmark_cov(self, slots: np.ndarray) -> np.ndarray:
         """(k, 3, 3) marginal covariances of the positions of the landmarks in ``slots``."""

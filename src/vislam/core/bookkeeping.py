@@ -1,0 +1,277 @@
+"""Per-landmark bookkeeping of the estimators, sized by what is in view.
+
+A drive of ``T`` frames has tens of thousands of landmark ids, but only a hundred or so
+are tracked at any frame. Everything here therefore keeps rows for the *live* ids only
+(tracks in progress, landmarks waiting for initialization, the previous frame's
+pixels), so the working memory of a run does not grow with the length of the drive or
+the number of ids in the dataset:
+
+* :class:`IdTable` — columns of per-id values for the live ids; a lookup is a binary
+  search in the sorted live ids; freed rows are reused.
+* :class:`TrackTable` — the gate and observation counters of each track in progress.
+* :class:`RepeatDetector` — flags observations that repeat the previous frame's pixels.
+* :class:`MapBuilder` — the estimated map, in fixed-size chunks (it is the output).
+
+The one thing that cannot be bounded is the output itself: the trajectory (one pose per
+frame) and the map (one entry per track).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vislam.core.results import LandmarkMap, RunStats
+
+__all__ = ["IdTable", "TrackTable", "RepeatDetector", "MapBuilder", "in_sorted"]
+
+def _positions(a: np.ndarray, sorted_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position in ``sorted_b`` of each element of ``a``, whether it is there)."""
+    if sorted_b.size == 0:
+        return np.zeros(np.shape(a), dtype=np.int64), np.zeros(np.shape(a), dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_b, a), sorted_b.size - 1)
+    return pos, sorted_b[pos] == a
+
+
+def in_sorted(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
+    """``np.isin(a, sorted_b)`` for an increasing ``sorted_b``, by binary search (the
+    sizes here are a few hundred, where this is several times faster)."""
+    return _positions(a, sorted_b)[1]
+
+
+#: Column specification: name -> (shape of one row, dtype, initial value of a new row).
+ColumnSpec = dict[str, tuple[tuple[int, ...], type, object]]
+
+
+class IdTable:
+    """Rows of per-id columns for a changing set of live ids.
+
+    ``rows(ids)`` maps ids to row indices (−1 when not live); ``table[name][rows]``
+    reads or writes a column. Columns are reallocated when the table grows (by 25 %,
+    so capacity stays near the largest number of ids live at once): index them through
+    ``table[name]`` after every :meth:`add`, never keep a column across one.
+    """
+
+    GROWTH = 1.25
+
+    def __init__(self, columns: ColumnSpec, capacity: int = 64):
+        self._spec = dict(columns)
+        capacity = max(int(capacity), 1)
+        self._cols = {name: np.full((capacity,) + shape, fill, dtype=dt) for name, (shape, dt, fill) in self._spec.items()}
+        self._free = np.ones(capacity, dtype=bool)
+        self._keys = np.zeros(0, dtype=np.int64)  # live ids, sorted
+        self._rows = np.zeros(0, dtype=np.int64)  # row of each live id
+
+    def __len__(self) -> int:
+        return int(self._keys.size)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self._cols[name]
+
+    @property
+    def capacity(self) -> int:
+        return int(self._free.size)
+
+    @property
+    def ids(self) -> np.ndarray:
+        """(L,) the live ids, sorted."""
+        return self._keys
+
+    def rows(self, ids: np.ndarray) -> np.ndarray:
+        """Row of each id, −1 for ids that are not live."""
+        pos, hit = _positions(np.asarray(ids, dtype=np.int64), self._keys)
+        return np.where(hit, self._rows[pos] if self._rows.size else -1, -1)
+
+    def add(self, ids: np.ndarray) -> np.ndarray:
+        """Make ``ids`` (distinct, not live) live with every column at its initial value;
+        return their rows."""
+        ids = np.asarray(ids, dtype=np.int64).ravel()
+        k = ids.size
+        if k == 0:
+            return np.zeros(0, dtype=np.int64)
+        free = np.flatnonzero(self._free)
+        if free.size < k:
+            self._grow(self.capacity + k - free.size)
+            free = np.flatnonzero(self._free)
+        rows = free[:k]
+        self._free[rows] = False
+        for name, (_, _, fill) in self._spec.items():
+            self._cols[name][rows] = fill
+        keys = np.concatenate([self._keys, ids])
+        order = np.argsort(keys, kind="stable")
+        self._keys = keys[order]
+        self._rows = np.concatenate([self._rows, rows])[order]
+        return rows
+
+    def remove(self, ids: np.ndarray) -> None:
+        """Forget ``ids`` (those that are not live are ignored); their rows are reused."""
+        ids = np.asarray(ids, dtype=np.int64).ravel()
+        if ids.size == 0 or self._keys.size == 0:
+            return
+        pos, hit = _positions(ids, self._keys)
+        gone = np.zeros(self._keys.size, dtype=bool)
+        gone[pos[hit]] = True
+        self._free[self._rows[gone]] = True
+        self._keys = self._keys[~gone]
+        self._rows = self._rows[~gone]
+
+    def _grow(self, needed: int) -> None:
+        capacity = max(int(needed), int(np.ceil(self.GROWTH * self.capacity)))
+        for name, (shape, dt, fill) in self._spec.items():
+            col = np.full((capacity,) + shape, fill, dtype=dt)
+            col[: self.capacity] = self._cols[name]
+            self._cols[name] = col
+        free = np.ones(capacity, dtype=bool)
+        free[: self._free.size] = self._free
+        self._free = free
+
+
+class TrackTable(IdTable):
+    """The tracks in progress: observation and gate counters, first and last frame.
+
+    A rejected landmark keeps its row (flag ``rejected``) while its track goes on, so
+    that its later observations are ignored; :meth:`end_unseen_rejections` drops it
+    once it is out of view (seen again later, it would start a new track).
+    ``extra`` adds estimator-specific columns (e.g. the drift test's sums).
+    """
+
+    COLUMNS: ColumnSpec = {"nobs": ((), np.int64, 0), "ngated": ((), np.int64, 0),
+                           "consecutive": ((), np.int64, 0), "first": ((), np.int64, -1),
+                           "last": ((), np.int64, -1), "rejected": ((), np.bool_, False)}
+
+    def __init__(self, extra: ColumnSpec | None = None, capacity: int = 64):
+        super().__init__({**self.COLUMNS, **(extra or {})}, capacity)
+
+    def is_rejected(self, ids: np.ndarray) -> np.ndarray:
+        rows = self.rows(ids)
+        return (rows >= 0) & self["rejected"][np.maximum(rows, 0)]
+
+    def started(self, ids: np.ndarray, t: int) -> np.ndarray:
+        """Start tracks for ``ids`` at frame t (their first observation); return their rows."""
+        rows = self.add(ids)
+        self["nobs"][rows] = 1
+        self["first"][rows] = t
+        self["last"][rows] = t
+        return rows
+
+    def updated(self, ids: np.ndarray, ok: np.ndarray, t: int, stats: RunStats, max_consecutive: int) -> np.ndarray:
+        """Record the gate outcome of one observation per id; return the ids to reject
+        (flagged rejected here)."""
+        rows = self.rows(ids)
+        good, gated = rows[ok], rows[~ok]
+        self["nobs"][good] += 1
+        self["last"][good] = t
+        self["ngated"][gated] += 1
+        self["consecutive"][good] = 0
+        self["consecutive"][gated] += 1
+        stats.observations_used += int(ok.sum())
+        stats.observations_gated += int((~ok).sum())
+        if not max_consecutive:
+            return ids[:0]
+        bad = self["consecutive"][rows] >= max_consecutive
+        self["rejected"][rows[bad]] = True
+        stats.landmarks_rejected += int(bad.sum())
+        return ids[bad]
+
+    def entry(self, ids: np.ndarray) -> tuple:
+        """(n_observations, n_gated, first_frame, last_frame) of the tracks of ``ids``."""
+        rows = self.rows(ids)
+        return self["nobs"][rows], self["ngated"][rows], self["first"][rows], self["last"][rows]
+
+    def end_unseen_rejections(self, ids_seen: np.ndarray) -> None:
+        """Drop the rejected tracks whose landmark is not observed in this frame
+        (``ids_seen`` increasing)."""
+        rejected = self.ids[self["rejected"][self._rows]]
+        if rejected.size:
+            self.remove(rejected[~in_sorted(rejected, ids_seen)])
+
+
+class RepeatDetector:
+    """Flags, frame by frame, observations whose four pixels repeat the same landmark's
+    observation in the previous frame bit for bit (see
+    :meth:`vislam.core.sequence.StereoObservations.repeated_mask`, which is the same test
+    over a whole sequence). Memory: the previous frame's observations."""
+
+    def __init__(self, enabled: bool, stats: RunStats):
+        self.enabled = enabled
+        self.stats = stats
+        self._t = -2
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._z = np.zeros((0, 4))
+
+    def __call__(self, t: int, ids: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """``ids`` strictly increasing (as in :class:`StereoObservations`), ``z`` (n, 4)."""
+        rep = np.zeros(ids.size, dtype=bool)
+        if not self.enabled:
+            return rep
+        if self._t == t - 1 and ids.size:
+            pos, hit = _positions(ids, self._ids)
+            rep = hit & np.all(self._z[pos] == z, axis=1) if self._ids.size else hit
+        self._t, self._ids, self._z = t, ids, z
+        self.stats.observations_repeated += int(rep.sum())
+        return rep
+
+
+class MapBuilder:
+    """Collects frozen landmark entries (marginalized, rejected or final) in fixed-size
+    chunks of columns: no per-entry small arrays, no doubling slack, and :meth:`build`
+    frees each column's chunks as soon as its sorted copy exists.
+
+    The ``track`` number of an entry is its rank among the entries of the same id,
+    ordered by first frame (tracks of one id never overlap)."""
+
+    _COLUMNS = {"ids": ((), np.int64), "p": ((3,), np.float64),
+                "cov": ((3, 3), np.float64), "nobs": ((), np.int64), "ngated": ((), np.int64),
+                "first": ((), np.int64), "last": ((), np.int64), "status": ((), np.uint8),
+                "v": ((3,), np.float64)}
+    CHUNK = 4096
+
+    def __init__(self):
+        self.n = 0
+        self._chunks: list[dict[str, np.ndarray]] = []
+
+    def _new_chunk(self) -> dict[str, np.ndarray]:
+        chunk = {k: np.zeros((self.CHUNK,) + shape, dtype=dt) for k, (shape, dt) in self._COLUMNS.items()}
+        self._chunks.append(chunk)
+        return chunk
+
+    def add(self, ids, p, cov, nobs, ngated, first, last, status, v=None) -> None:
+        k = int(np.size(ids))
+        values = {"ids": ids, "p": np.reshape(p, (k, 3)), "cov": np.reshape(cov, (k, 3, 3)),
+                  "nobs": nobs, "ngated": ngated, "first": first, "last": last,
+                  "status": np.broadcast_to(status, (k,)), "v": np.zeros((k, 3)) if v is None else np.reshape(v, (k, 3))}
+        done = 0
+        while done < k:
+            offset = self.n % self.CHUNK
+            chunk = self._chunks[-1] if offset else self._new_chunk()
+            m = min(k - done, self.CHUNK - offset)
+            for key, value in values.items():
+                chunk[key][offset:offset + m] = value[done:done + m] if np.ndim(value) else value
+            done += m
+            self.n += m
+
+    def build(self) -> LandmarkMap:
+        """The map sorted by (id, track); each column's chunks are released once its
+        sorted copy exists."""
+        n = self.n
+
+        def column(key: str) -> np.ndarray:
+            shape, dt = self._COLUMNS[key]
+            parts = [c.pop(key) for c in self._chunks]
+            return np.concatenate(parts)[:n] if parts else np.zeros((0,) + shape, dtype=dt)
+
+        ids, first = column("ids"), column("first")
+        order = np.lexsort((first, ids))
+        out = {"ids": ids[order], "first": first[order]}
+        del ids, first
+        # rank within each id: position minus the position of the id's first entry
+        starts = np.flatnonzero(np.r_[True, out["ids"][1:] != out["ids"][:-1]]) if n else np.zeros(0, dtype=np.int64)
+        track = np.arange(n, dtype=np.int64)
+        if n:
+            track -= np.repeat(starts, np.diff(np.r_[starts, n]))
+        for key in self._COLUMNS:
+            if key not in out:
+                out[key] = column(key)[order]
+        self._chunks, self.n = [], 0
+        return LandmarkMap(ids=out["ids"], track=track, p_lm_in_world=out["p"], covariance=out["cov"],
+                           n_observations=out["nobs"], n_gated=out["ngated"], first_frame=out["first"],
+                           last_frame=out["last"], status=out["status"], v_lm_in_world=out["v"])
