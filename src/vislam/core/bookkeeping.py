@@ -76,6 +76,11 @@ class IdTable:
         """(L,) the live ids, sorted."""
         return self._keys
 
+    @property
+    def live_rows(self) -> np.ndarray:
+        """(L,) the row of each of :attr:`ids`."""
+        return self._rows
+
     def rows(self, ids: np.ndarray) -> np.ndarray:
         """Row of each id, −1 for ids that are not live."""
         pos, hit = _positions(np.asarray(ids, dtype=np.int64), self._keys)
@@ -141,10 +146,6 @@ class TrackTable(IdTable):
     def __init__(self, extra: ColumnSpec | None = None, capacity: int = 64):
         super().__init__({**self.COLUMNS, **(extra or {})}, capacity)
 
-    def is_rejected(self, ids: np.ndarray) -> np.ndarray:
-        rows = self.rows(ids)
-        return (rows >= 0) & self["rejected"][np.maximum(rows, 0)]
-
     def started(self, ids: np.ndarray, t: int) -> np.ndarray:
         """Start tracks for ``ids`` at frame t (their first observation); return their rows."""
         rows = self.add(ids)
@@ -153,10 +154,11 @@ class TrackTable(IdTable):
         self["last"][rows] = t
         return rows
 
-    def updated(self, ids: np.ndarray, ok: np.ndarray, t: int, stats: RunStats, max_consecutive: int) -> np.ndarray:
-        """Record the gate outcome of one observation per id; return the ids to reject
-        (flagged rejected here)."""
-        rows = self.rows(ids)
+    def updated(self, ids: np.ndarray, ok: np.ndarray, t: int, stats: RunStats, max_consecutive: int,
+                rows: np.ndarray | None = None) -> np.ndarray:
+        """Record the gate outcome of one observation per id (``rows``: their rows, if
+        known); return the ids to reject (flagged rejected here)."""
+        rows = self.rows(ids) if rows is None else rows
         good, gated = rows[ok], rows[~ok]
         self["nobs"][good] += 1
         self["last"][good] = t
@@ -180,7 +182,7 @@ class TrackTable(IdTable):
     def end_unseen_rejections(self, ids_seen: np.ndarray) -> None:
         """Drop the rejected tracks whose landmark is not observed in this frame
         (``ids_seen`` increasing)."""
-        rejected = self.ids[self["rejected"][self._rows]]
+        rejected = self._keys[self["rejected"][self._rows]]
         if rejected.size:
             self.remove(rejected[~in_sorted(rejected, ids_seen)])
 

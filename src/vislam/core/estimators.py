@@ -218,11 +218,6 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
     frame_seconds = np.zeros(T)
     frame_seconds[0] = time.perf_counter() - t_start
 
-    def active(ids: np.ndarray) -> np.ndarray:
-        """Has a current estimate: a track in progress that is not rejected."""
-        rows = tracks.rows(ids)
-        return (rows >= 0) & ~tracks["rejected"][np.maximum(rows, 0)]
-
     def freeze(ids: np.ndarray, status: int) -> None:
         """Enter the tracks of ``ids`` into the map; a rejected track stays (flagged)
         while its landmark is in view, so that its observations keep being ignored."""
@@ -232,26 +227,32 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
             if status != LANDMARK_REJECTED:
                 tracks.remove(ids)
 
+    def lookup(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row of each id's track or −1, whether it has a current estimate: a track
+        in progress that is not rejected)."""
+        rows = tracks.rows(ids)
+        return rows, (rows >= 0) & ~tracks["rejected"][np.maximum(rows, 0)]
+
     for t in range(T):
         tic = time.perf_counter()
         ids_seen, z = obs.frame(t)
         rep = repeated(t, ids_seen, z)
-        if split and np.any(rep & active(ids_seen)):
-            freeze(ids_seen[rep & active(ids_seen)], LANDMARK_OK)  # the track ends; the repeat starts a new one
+        rows, act = lookup(ids_seen)
+        if split and np.any(rep & act):
+            freeze(ids_seen[rep & act], LANDMARK_OK)  # the track ends; the repeat starts a new one
             rep = np.zeros_like(rep)
-        keep = ~rep & ~tracks.is_rejected(ids_seen)
-        ids, z = ids_seen[keep], z[keep]
-        upd = active(ids)
+            rows, act = lookup(ids_seen)
+        keep = ~rep & (act | (rows < 0))  # rejected landmarks stay ignored while in view
+        ids, z, rows, upd = ids_seen[keep], z[keep], rows[keep], act[keep]
         if np.any(upd):
-            u_ids = ids[upd]
-            rows = tracks.rows(u_ids)
-            tracks["mean"][rows], tracks["cov"][rows], ok, _ = mapping_update(
-                model, imu_T_world[t], tracks["mean"][rows], tracks["cov"][rows], z[upd], V, gate)
-            bad = tracks.updated(u_ids, ok, t, stats, options.max_consecutive_gated)
+            u_ids, u_rows = ids[upd], rows[upd]
+            tracks["mean"][u_rows], tracks["cov"][u_rows], ok, _ = mapping_update(
+                model, imu_T_world[t], tracks["mean"][u_rows], tracks["cov"][u_rows], z[upd], V, gate)
+            bad = tracks.updated(u_ids, ok, t, stats, options.max_consecutive_gated, rows=u_rows)
             freeze(bad, LANDMARK_REJECTED)
         # tracks whose landmark is out of view end (a skipped repeat keeps its track alive)
-        ended = tracks.ids[~in_sorted(tracks.ids, ids_seen)]
-        freeze(ended[active(ended)], LANDMARK_OK)
+        ended = ~in_sorted(tracks.ids, ids_seen) & ~tracks["rejected"][tracks.live_rows]
+        freeze(tracks.ids[ended], LANDMARK_OK)
         tracks.end_unseen_rejections(ids_seen)
         new = ~upd
         if np.any(new):
@@ -267,8 +268,7 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
         frame_seconds[t] += time.perf_counter() - tic
         if progress:
             progress(t + 1)
-    remaining = tracks.ids
-    freeze(remaining[active(remaining)], LANDMARK_OK)
+    freeze(tracks.ids[~tracks["rejected"][tracks.live_rows]], LANDMARK_OK)
     stats.frames_processed = T
     stats.frame_seconds = frame_seconds
     return RunResult("mapping", sequence.name, sequence.timestamps_s.copy(), world_T_imu, pose_cov, builder.build(),
@@ -344,16 +344,17 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                     slots_rep = state.slots_of(ids_seen[rep])
                     freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one
                     rep = np.zeros_like(rep)
-                usable = ~rep & ~tracks.is_rejected(ids_seen)
-                ids, z = ids_seen[usable], z[usable]
+                track_rows = tracks.rows(ids_seen)
+                rejected = (track_rows >= 0) & tracks["rejected"][np.maximum(track_rows, 0)]
+                usable = ~rep & ~rejected
+                ids, z, track_rows = ids_seen[usable], z[usable], track_rows[usable]
                 slot_arr = state.slots_of(ids)
                 live = slot_arr >= 0
                 # ---- 2. update with the landmarks in the state
                 if np.any(live):
-                    slots, lids = slot_arr[live], ids[live]
+                    slots, lids, rows = slot_arr[live], ids[live], track_rows[live]
                     r, Hp, Hl, in_front, nis, blocks = slam_predict_nis(state, model, slots, z[live], V, N_pose)
                     ok = in_front & (nis <= gate)
-                    rows = tracks.rows(lids)
                     young = tracks["nobs"][rows] <= options.probation_frames  # init counts as 1
                     joint = ok & ~young
                     if drift_gate < np.inf and np.any(ok):
@@ -380,7 +381,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                         r2, Hp2, Hl2, _, _, _ = slam_predict_nis(state, model, slots[probe], z[live][probe], V, N_pose)
                         schmidt_update(state, slots[probe], r2, Hp2, Hl2, V)
                     # ---- 3. reject landmarks that keep failing the gate
-                    bad = tracks.updated(lids, ok, t, stats, options.max_consecutive_gated)
+                    bad = tracks.updated(lids, ok, t, stats, options.max_consecutive_gated, rows=rows)
                     freeze(state.slots_of(bad), LANDMARK_REJECTED)
                 # ---- 4. marginalize landmarks whose track ended
                 if not options.keep_all_landmarks and state.n_landmarks:

@@ -23,8 +23,9 @@ class LandmarkMap:
 
     Attributes:
         ids: (K,) dataset landmark id (column j of the features array).
-        track: (K,) 0 for a landmark's first track; a landmark seen again after it was
-            marginalized starts track 1, 2, … (never happens with contiguous tracks).
+        track: (K,) 0 for a landmark's first track; a landmark seen again after its
+            track ended (a frame without it) starts track 1, 2, … in the order of their
+            first frames (never happens with contiguous tracks).
         p_lm_in_world: (K, 3) position mean in the world frame (m).
         covariance: (K, 3, 3) marginal covariance of the position (m²).
         n_observations: (K,) observations used (initialization + accepted updates).
