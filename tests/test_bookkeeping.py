@@ -158,3 +158,21 @@ def test_estimators_need_no_memory_per_dataset_id(drive, mode, extra):
         np.testing.assert_array_equal(getattr(la, key), getattr(lb, key), err_msg=key)
     assert a.stats.to_dict()["landmarks_rejected"] == b.stats.to_dict()["landmarks_rejected"]
     assert la.ids.size > 100 and np.any(la.status == LANDMARK_REJECTED)
+
+
+@pytest.mark.parametrize("mode", ["mapping", "slam"])
+def test_a_landmark_seen_again_after_a_gap_starts_a_new_track(drive, mode):
+    """Mapping and SLAM end a track when its landmark is not observed in a frame."""
+    dense = drive.sequence.observations.dense()
+    observed = dense[0] != -1
+    # a static landmark observed for 20+ frames; hide it in one frame in the middle
+    lengths = observed.sum(axis=1)
+    j = int(np.flatnonzero((lengths >= 20) & np.all(observed[:, 40:61], axis=1))[0])
+    dense[:, j, 50] = -1.0
+    seq = drive.sequence.replace(observations=StereoObservations.from_dense(dense))
+    lm = estimators.run(seq, mode, FilterOptions(**NOISY_IMU)).landmarks
+    mine = lm.ids == j
+    assert mine.sum() == 2
+    np.testing.assert_array_equal(lm.track[mine], [0, 1])
+    first, last = lm.first_frame[mine], lm.last_frame[mine]
+    assert last[0] <= 49 and first[1] >= 51
