@@ -22,20 +22,29 @@ import numpy as np
 
 from vislam.core.results import LandmarkMap, RunStats
 
-__all__ = ["IdTable", "TrackTable", "RepeatDetector", "MapBuilder", "in_sorted"]
+__all__ = ["IdTable", "TrackTable", "RepeatDetector", "MapBuilder", "in_sorted", "sorted_positions", "sorted_lookup"]
 
-def _positions(a: np.ndarray, sorted_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(position in ``sorted_b`` of each element of ``a``, whether it is there)."""
+
+def sorted_positions(a: np.ndarray, sorted_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position in the increasing ``sorted_b`` of each element of ``a``, whether it is
+    there). Positions of absent elements are clipped into range (all 0, and not valid
+    indices, when ``sorted_b`` is empty)."""
     if sorted_b.size == 0:
         return np.zeros(np.shape(a), dtype=np.int64), np.zeros(np.shape(a), dtype=bool)
     pos = np.minimum(np.searchsorted(sorted_b, a), sorted_b.size - 1)
     return pos, sorted_b[pos] == a
 
 
+def sorted_lookup(a: np.ndarray, sorted_keys: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values[i]`` where ``a == sorted_keys[i]`` (keys increasing), −1 where ``a`` is absent."""
+    pos, hit = sorted_positions(np.asarray(a, dtype=np.int64), sorted_keys)
+    return np.where(hit, values[pos], -1) if sorted_keys.size else np.full(np.shape(a), -1, dtype=np.int64)
+
+
 def in_sorted(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
     """``np.isin(a, sorted_b)`` for an increasing ``sorted_b``, by binary search (the
     sizes here are a few hundred, where this is several times faster)."""
-    return _positions(a, sorted_b)[1]
+    return sorted_positions(a, sorted_b)[1]
 
 
 #: Column specification: name -> (shape of one row, dtype, initial value of a new row).
@@ -83,8 +92,7 @@ class IdTable:
 
     def rows(self, ids: np.ndarray) -> np.ndarray:
         """Row of each id, −1 for ids that are not live."""
-        pos, hit = _positions(np.asarray(ids, dtype=np.int64), self._keys)
-        return np.where(hit, self._rows[pos] if self._rows.size else -1, -1)
+        return sorted_lookup(ids, self._keys, self._rows)
 
     def add(self, ids: np.ndarray) -> np.ndarray:
         """Make ``ids`` (distinct, not live) live with every column at its initial value;
@@ -112,7 +120,7 @@ class IdTable:
         ids = np.asarray(ids, dtype=np.int64).ravel()
         if ids.size == 0 or self._keys.size == 0:
             return
-        pos, hit = _positions(ids, self._keys)
+        pos, hit = sorted_positions(ids, self._keys)
         gone = np.zeros(self._keys.size, dtype=bool)
         gone[pos[hit]] = True
         self._free[self._rows[gone]] = True
@@ -206,7 +214,7 @@ class RepeatDetector:
         if not self.enabled:
             return rep
         if self._t == t - 1 and ids.size:
-            pos, hit = _positions(ids, self._ids)
+            pos, hit = sorted_positions(ids, self._ids)
             rep = hit & np.all(self._z[pos] == z, axis=1) if self._ids.size else hit
         self._t, self._ids, self._z = t, ids, z
         self.stats.observations_repeated += int(rep.sum())

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vislam.core.bookkeeping import sorted_lookup
+
 __all__ = ["SlamState", "POSE_DIM", "LM_DIM"]
 
 POSE_DIM = 6
@@ -81,11 +83,7 @@ class SlamState:
     def slots_of(self, ids: np.ndarray) -> np.ndarray:
         """Slot of each dataset id, −1 for ids not in the state (a binary search in the
         live ids: no memory per dataset id)."""
-        ids = np.asarray(ids, dtype=np.int64)
-        if self._sorted_ids.size == 0:
-            return np.full(ids.shape, -1, dtype=np.int64)
-        pos = np.minimum(np.searchsorted(self._sorted_ids, ids), self._sorted_ids.size - 1)
-        return np.where(self._sorted_ids[pos] == ids, self._sorted_slots[pos], -1)
+        return sorted_lookup(ids, self._sorted_ids, self._sorted_slots)
 
     # --- structural changes ----------------------------------------------------------
     def _reindex(self) -> None:
