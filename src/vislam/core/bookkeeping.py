@@ -154,6 +154,11 @@ class TrackTable(IdTable):
     def __init__(self, extra: ColumnSpec | None = None, capacity: int = 64):
         super().__init__({**self.COLUMNS, **(extra or {})}, capacity)
 
+    def lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row of each id's track, −1 when none; whether that track is rejected)."""
+        rows = self.rows(ids)
+        return rows, (rows >= 0) & self["rejected"][np.maximum(rows, 0)]
+
     def started(self, ids: np.ndarray, t: int) -> np.ndarray:
         """Start tracks for ``ids`` at frame t (their first observation); return their rows."""
         rows = self.add(ids)

@@ -227,22 +227,18 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
             if status != LANDMARK_REJECTED:
                 tracks.remove(ids)
 
-    def lookup(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(row of each id's track or −1, whether it has a current estimate: a track
-        in progress that is not rejected)."""
-        rows = tracks.rows(ids)
-        return rows, (rows >= 0) & ~tracks["rejected"][np.maximum(rows, 0)]
-
     for t in range(T):
         tic = time.perf_counter()
         ids_seen, z = obs.frame(t)
         rep = repeated(t, ids_seen, z)
-        rows, act = lookup(ids_seen)
+        rows, rejected = tracks.lookup(ids_seen)
+        act = (rows >= 0) & ~rejected  # has a current estimate
         if split and np.any(rep & act):
             freeze(ids_seen[rep & act], LANDMARK_OK)  # the track ends; the repeat starts a new one
             rep = np.zeros_like(rep)
-            rows, act = lookup(ids_seen)
-        keep = ~rep & (act | (rows < 0))  # rejected landmarks stay ignored while in view
+            rows, rejected = tracks.lookup(ids_seen)
+            act = (rows >= 0) & ~rejected
+        keep = ~rep & ~rejected  # rejected landmarks stay ignored while in view
         ids, z, rows, upd = ids_seen[keep], z[keep], rows[keep], act[keep]
         if np.any(upd):
             u_ids, u_rows = ids[upd], rows[upd]
@@ -344,8 +340,7 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
                     slots_rep = state.slots_of(ids_seen[rep])
                     freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one
                     rep = np.zeros_like(rep)
-                track_rows = tracks.rows(ids_seen)
-                rejected = (track_rows >= 0) & tracks["rejected"][np.maximum(track_rows, 0)]
+                track_rows, rejected = tracks.lookup(ids_seen)
                 usable = ~rep & ~rejected
                 ids, z, track_rows = ids_seen[usable], z[usable], track_rows[usable]
                 slot_arr = state.slots_of(ids)
