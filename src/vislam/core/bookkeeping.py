@@ -187,9 +187,10 @@ class TrackTable(IdTable):
         stats.landmarks_rejected += int(bad.sum())
         return ids[bad]
 
-    def entry(self, ids: np.ndarray) -> tuple:
-        """(n_observations, n_gated, first_frame, last_frame) of the tracks of ``ids``."""
-        rows = self.rows(ids)
+    def entry(self, ids: np.ndarray, rows: np.ndarray | None = None) -> tuple:
+        """(n_observations, n_gated, first_frame, last_frame) of the tracks of ``ids``
+        (``rows``: their rows, if known)."""
+        rows = self.rows(ids) if rows is None else rows
         return self["nobs"][rows], self["ngated"][rows], self["first"][rows], self["last"][rows]
 
     def end_unseen_rejections(self, ids_seen: np.ndarray) -> None:

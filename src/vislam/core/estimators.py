@@ -223,7 +223,7 @@ def run_mapping(sequence: Sequence, options: FilterOptions | None = None, world_
         while its landmark is in view, so that its observations keep being ignored."""
         if ids.size:
             rows = tracks.rows(ids)
-            builder.add(ids, tracks["mean"][rows], tracks["cov"][rows], *tracks.entry(ids), status)
+            builder.add(ids, tracks["mean"][rows], tracks["cov"][rows], *tracks.entry(ids, rows), status)
             if status != LANDMARK_REJECTED:
                 tracks.remove(ids)
 
