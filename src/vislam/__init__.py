@@ -1,4 +1,17 @@
-"""vislam: stereo visual-inertial SLAM on SE(3) with an extended Kalman filter."""
+"""vislam: stereo visual-inertial SLAM on SE(3) — the report's extended Kalman filter.
+
+The public Python API (see the README's "Python API" section)::
+
+    import vislam
+    seq = vislam.load_sequence("drive.npz")
+    f = vislam.SlamFilter(seq.calibration, vislam.FilterOptions(velocity_noise_mps=0.5))
+    for frame in seq.frames():
+        f.step(frame)
+        pose = f.world_T_imu
+
+Names are imported lazily (on first use), so ``import vislam`` is instant and the
+command line can handle Ctrl-C from its very first moment.
+"""
 
 from vislam.errors import (
     ConfigError,
@@ -12,6 +25,32 @@ from vislam.errors import (
 
 __version__ = "0.1.0"
 
+#: Public name -> module that defines it (imported on first access).
+_LAZY = {
+    # data
+    "load_sequence": "vislam.tools.dataset_io",
+    "load_dataset": "vislam.tools.dataset_io",
+    "save_sequence": "vislam.tools.dataset_io",
+    "iter_frames": "vislam.tools.dataset_io",
+    "Sequence": "vislam.core.sequence",
+    "Frame": "vislam.core.sequence",
+    "Calibration": "vislam.core.sequence",
+    "StereoCamera": "vislam.core.camera",
+    # options and estimators
+    "FilterOptions": "vislam.core.options",
+    "LocalizationFilter": "vislam.core.filters",
+    "MappingFilter": "vislam.core.filters",
+    "SlamFilter": "vislam.core.filters",
+    "FrameStats": "vislam.core.filters",
+    "run": "vislam.core.estimators",
+    "RunResult": "vislam.core.results",
+    "LandmarkMap": "vislam.core.results",
+    # simulation and evaluation
+    "simulate_drive": "vislam.core.simulate",
+    "SimulationOptions": "vislam.core.simulate",
+    "evaluate": "vislam.tools.evaluation",
+}
+
 __all__ = [
     "ConfigError",
     "DatasetError",
@@ -21,4 +60,20 @@ __all__ = [
     "OutputError",
     "VislamError",
     "__version__",
+    *sorted(_LAZY),
 ]
+
+
+def __getattr__(name: str):
+    module_name = _LAZY.get(name)
+    if module_name is None:
+        raise AttributeError(f"module 'vislam' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module_name), name)
+    globals()[name] = value  # cache: the next access does not come here
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -1,5 +1,3 @@
-import sys
+from vislam._launcher import entry_point
 
-from vislam.cli import main
-
-sys.exit(main())
+entry_point()

@@ -70,5 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
-def entry_point() -> None:  # pragma: no cover - used by console script
-    sys.exit(main())
+def entry_point() -> None:  # pragma: no cover - kept for scripts installed before vislam._launcher
+    from vislam._launcher import entry_point as launch
+
+    launch()

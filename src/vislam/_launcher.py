@@ -1,0 +1,53 @@
+"""Process entry point of the ``vislam`` command (and ``python -m vislam``).
+
+Nothing heavy is imported at module level: the command-line interface, numpy, scipy
+and matplotlib are imported inside :func:`entry_point`, under the same handler for
+Ctrl-C as the command itself. An interrupt at any moment — during the start-up imports
+included — ends the process with one line on stderr and exit code 130, never a
+traceback; outputs are written all at once or not at all (the commands stage them).
+"""
+
+import sys
+
+INTERRUPT_EXIT_CODE = 130
+
+
+def _interrupted(message: str) -> int:
+    """Report an interrupt in one line and return its exit code (ignoring further Ctrl-C)."""
+    import signal
+
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the report
+    except (ValueError, OSError):  # not the main thread / not supported
+        pass
+    try:
+        print(message, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
+    return INTERRUPT_EXIT_CODE
+
+
+def entry_point() -> None:
+    """Run the command line and exit with its code."""
+    command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
+    name = f"vislam {command}" if command else "vislam"
+    try:
+        from vislam.cli import main
+
+        code = main()
+    except KeyboardInterrupt:
+        code = _interrupted(f"{name}: interrupted; no output written")
+    if code == INTERRUPT_EXIT_CODE:
+        # After an interrupt, leave without the interpreter's shutdown: CPython ends a
+        # process that saw an unhandled KeyboardInterrupt anywhere (in an import, say)
+        # by re-raising SIGINT, which turns our exit code 130 into "killed by signal".
+        # The commands have already removed their staging directories at this point.
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError, AttributeError):
+                pass
+        import os
+
+        os._exit(code)
+    sys.exit(code)
