@@ -146,10 +146,10 @@ def test_bad_inputs_give_one_line_and_no_output(tmp_path, sim):
 
 
 def test_partial_run_writes_outputs_and_fails(tmp_path, sim, monkeypatch, capsys):
-    from vislam.core import estimators
+    from vislam.core import filters
 
     data, _ = sim
-    real_update = estimators.slam_update
+    real_update = filters.slam_update
     calls = {"n": 0}
 
     def failing_update(*args, **kwargs):
@@ -158,7 +158,7 @@ def test_partial_run_writes_outputs_and_fails(tmp_path, sim, monkeypatch, capsys
             raise EstimationError("simulated divergence")
         return real_update(*args, **kwargs)
 
-    monkeypatch.setattr(estimators, "slam_update", failing_update)
+    monkeypatch.setattr(filters, "slam_update", failing_update)
     out = tmp_path / "partial"
     code = main(["run", str(data), "--out", str(out), "--quiet"])
     captured = capsys.readouterr()

@@ -265,6 +265,13 @@ class MapBuilder:
             done += m
             self.n += m
 
+    def snapshot(self) -> LandmarkMap:
+        """The map so far, sorted as by :meth:`build`, leaving the builder as it is."""
+        copy = MapBuilder()
+        copy.n = self.n
+        copy._chunks = [{k: v.copy() for k, v in chunk.items()} for chunk in self._chunks]
+        return copy.build()
+
     def build(self) -> LandmarkMap:
         """The map sorted by (id, track); each column's chunks are released once its
         sorted copy exists."""

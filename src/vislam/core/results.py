@@ -122,6 +122,9 @@ class RunResult:
         stats: counts and timings.
         partial: True when the run stopped early (``error`` says why); arrays then hold
             the frames processed so far (``stats.frames_processed``).
+        frame_stats: per-frame statistics, one (T,) array per field of
+            :class:`vislam.core.filters.FrameStats` (observations, used, gated, repeated,
+            initialized, rejected, live_landmarks, nis_mean, nis_count), or None.
     """
 
     mode: str
@@ -135,6 +138,7 @@ class RunResult:
     partial: bool = False
     error: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    frame_stats: dict[str, np.ndarray] | None = None
 
     @property
     def imu_T_world(self) -> np.ndarray:

@@ -20,7 +20,7 @@ import numpy as np
 
 from vislam.core.camera import StereoCamera
 
-__all__ = ["StereoObservations", "Sequence", "MISSING_PIXEL", "frozen_array"]
+__all__ = ["StereoObservations", "Sequence", "Frame", "Calibration", "MISSING_PIXEL", "frozen_array"]
 
 #: Value of all four pixel coordinates where a landmark is not observed (dataset format).
 MISSING_PIXEL = -1.0
@@ -165,6 +165,50 @@ class StereoObservations:
 
 
 @dataclass(frozen=True, eq=False)
+class Calibration:
+    """What a filter needs to know about the sensors: the stereo camera and ``cam_T_imu``
+    (maps IMU coordinates into the left camera frame)."""
+
+    camera: StereoCamera
+    cam_T_imu: np.ndarray
+
+    def __post_init__(self):
+        object.__setattr__(self, "cam_T_imu", frozen_array(self.cam_T_imu, np.float64))
+        if self.cam_T_imu.shape != (4, 4):
+            raise ValueError(f"cam_T_imu must be 4x4, got {self.cam_T_imu.shape}")
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One frame of a recording, as a robot (or a ROS node) delivers it.
+
+    Attributes:
+        index: frame number t (0 for the first frame).
+        timestamp_s: time of the frame (s).
+        dt_s: time since the previous frame, τ = t_t − t_{t−1} (s); 0 for the first frame.
+        linear_velocity_mps: (3,) IMU-frame linear velocity sample of this frame (m/s).
+        angular_velocity_radps: (3,) IMU-frame angular velocity sample (rad/s).
+            By the velocity association of the KITTI files (see
+            :mod:`vislam.core.propagation`), the sample of frame t is the twist over the
+            interval from frame t−1 to frame t: ``step`` predicts with it over ``dt_s``.
+        landmark_ids: (n,) int64 ids of the landmarks observed, strictly increasing.
+        pixels: (n, 4) ``[uL, vL, uR, vR]`` of each observation (px).
+    """
+
+    index: int
+    timestamp_s: float
+    dt_s: float
+    linear_velocity_mps: np.ndarray
+    angular_velocity_radps: np.ndarray
+    landmark_ids: np.ndarray
+    pixels: np.ndarray
+
+    @property
+    def n_observations(self) -> int:
+        return int(self.landmark_ids.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
 class Sequence:
     """A stereo visual-inertial recording.
 
@@ -223,6 +267,26 @@ class Sequence:
         out = se3_inverse(self.cam_T_imu)
         out.setflags(write=False)
         return out
+
+    @property
+    def calibration(self) -> Calibration:
+        """The sensors' calibration, for the filters' constructors."""
+        return Calibration(self.camera, self.cam_T_imu)
+
+    def frame(self, t: int) -> Frame:
+        """Frame ``t`` (its arrays are read-only views into the sequence)."""
+        if not 0 <= t < self.n_frames:
+            raise IndexError(f"frame {t} out of range [0, {self.n_frames})")
+        ids, pixels = self.observations.frame(t)
+        dt = float(self.timestamps_s[t] - self.timestamps_s[t - 1]) if t > 0 else 0.0
+        return Frame(t, float(self.timestamps_s[t]), dt, self.linear_velocity_in_imu_mps[t],
+                     self.angular_velocity_in_imu_radps[t], ids, pixels)
+
+    def frames(self, start: int = 0, stop: int | None = None):
+        """Iterate over the frames ``start .. stop − 1`` in order (:class:`Frame`)."""
+        stop = self.n_frames if stop is None else min(stop, self.n_frames)
+        for t in range(start, stop):
+            yield self.frame(t)
 
     def velocities(self) -> np.ndarray:
         """(T, 6) twists u_t = (v_t, ω_t) in the report's order."""

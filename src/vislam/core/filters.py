@@ -1,0 +1,753 @@
+"""The report's three estimators as stepwise filters: objects that own their state and
+bookkeeping and advance one frame at a time, as a robot (or a ROS node) delivers data.
+
+* :class:`LocalizationFilter` — EKF prediction of the IMU pose (the report's III-A);
+* :class:`MappingFilter` — EKF update of landmarks with the poses known (III-B);
+* :class:`SlamFilter` — the joint EKF over pose and landmarks (III-C).
+
+Each has ``predict(dt_s, linear_velocity, angular_velocity)`` (the IMU sample of the
+interval ending at the new frame), ``update(ids, pixels)`` (the stereo observations of
+the new frame) and ``step(frame)`` (both; the first frame has no prediction), and read
+access to the current estimate: ``world_T_imu`` (4x4), ``pose_covariance`` (6x6, left
+perturbation of ``imu_T_world`` in (v, ω) order), the landmarks in the state and the
+frozen map, the statistics of the last frame (:class:`FrameStats`) and of the run
+(:class:`~vislam.core.results.RunStats`). ``finish()`` freezes what is still live and
+returns the :class:`~vislam.core.results.LandmarkMap`.
+
+The batch drivers of :mod:`vislam.core.estimators` are loops over these objects, so the
+online and offline paths are one code.
+
+SLAM processing order at frame t (:meth:`SlamFilter.update`; each step is a method):
+
+1. :meth:`SlamFilter.predict` with the velocity sample of frame t over [t−1, t];
+2. :meth:`SlamFilter._select` — skip exact repeats and observations of rejected landmarks;
+3. :meth:`SlamFilter._update_live` — gate, joint EKF update of pose and landmarks in the
+   state, innovation drift test, Schmidt probation of young landmarks;
+4. :meth:`SlamFilter._reject` — landmarks gated too often in a row leave the state;
+5. :meth:`SlamFilter._marginalize_ended` — landmarks not observed leave Σ, frozen into the map;
+6. :meth:`SlamFilter._initialize_new` — new landmarks from the stereo model's inverse;
+7. :meth:`SlamFilter._check_health` — non-finite state or a lost PSD diagonal raise
+   :class:`~vislam.errors.EstimationError` naming the frame.
+
+A failure leaves the filter unusable for further frames; the batch driver stops there and
+returns a partial result.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
+from vislam.core.lie import se3_adjoint, se3_inverse
+from vislam.core.options import FilterOptions
+from vislam.core.propagation import predict_pose, predict_state
+from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
+from vislam.core.sequence import Calibration, Frame
+from vislam.core.state import SlamState
+from vislam.core.updaters import (
+    StereoModel,
+    conditional_residual_model,
+    initialization_guard,
+    mapping_initialize,
+    mapping_update,
+    schmidt_update,
+    slam_initialize_landmarks,
+    slam_predict_nis,
+    slam_update,
+    slam_update_reference,
+    static_consistency_nis,
+)
+from vislam.errors import ConfigError, EstimationError, GeometryError
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["FrameStats", "LocalizationFilter", "MappingFilter", "SlamFilter", "FRAME_STAT_FIELDS"]
+
+
+@dataclass
+class FrameStats:
+    """What happened in one frame's update.
+
+    Attributes:
+        frame: frame index t.
+        observations: observations in the frame.
+        used: observations used (updates of live landmarks accepted by the gate, plus
+            initializations).
+        gated: observations refused by the chi-square gate (or the static check of
+            delayed initialization).
+        repeated: exact repeats of the previous frame's pixels (skipped by default).
+        initialized: landmarks that entered the state (or the mapping tracks started).
+        rejected: landmarks rejected in this frame (gate or drift test).
+        live_landmarks: landmarks in the state after the frame.
+        nis_mean: mean normalized innovation squared ``rᵀS⁻¹r`` of the 4-D stereo
+            innovations that passed the gate (expected 4 for a consistent filter before
+            gating; NaN when none).
+        nis_count: how many innovations ``nis_mean`` averages.
+    """
+
+    frame: int = 0
+    observations: int = 0
+    used: int = 0
+    gated: int = 0
+    repeated: int = 0
+    initialized: int = 0
+    rejected: int = 0
+    live_landmarks: int = 0
+    nis_mean: float = float("nan")
+    nis_count: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+#: Names of the per-frame statistics (the batch result keeps one array of each).
+FRAME_STAT_FIELDS = tuple(FrameStats.__dataclass_fields__)
+
+
+class _StatsDelta:
+    """Per-frame statistics as differences of the cumulative :class:`RunStats` counters."""
+
+    def __init__(self, stats: RunStats):
+        self.stats = stats
+        self._start = (0, 0, 0, 0, 0)
+
+    def _now(self):
+        s = self.stats
+        return (s.observations_used, s.observations_gated, s.observations_repeated, s.landmarks_initialized,
+                s.landmarks_rejected)
+
+    def begin(self) -> None:
+        self._start = self._now()
+
+    def end(self, frame: int, observations: int, live: int, nis_sum: float, nis_count: int) -> FrameStats:
+        used, gated, repeated, initialized, rejected = (b - a for a, b in zip(self._start, self._now()))
+        return FrameStats(frame, observations, used, gated, repeated, initialized, rejected, live,
+                          nis_sum / nis_count if nis_count else float("nan"), nis_count)
+
+
+def _twist(linear_velocity, angular_velocity) -> np.ndarray:
+    """u = (v, ω), the report's twist order."""
+    return np.concatenate([np.asarray(linear_velocity, dtype=np.float64).reshape(3),
+                           np.asarray(angular_velocity, dtype=np.float64).reshape(3)])
+
+
+def _check_dt(dt_s) -> float:
+    dt = float(dt_s)
+    if not np.isfinite(dt) or dt < 0:
+        raise ConfigError(f"predict: dt_s must be a finite time step >= 0 (s), got {dt_s!r}")
+    return dt
+
+
+def _observations(ids, pixels) -> tuple[np.ndarray, np.ndarray]:
+    """Checked (ids (n,), pixels (n, 4)) of one frame."""
+    ids = np.asarray(ids)
+    pixels = np.asarray(pixels, dtype=np.float64)
+    if ids.ndim != 1 or pixels.shape != (ids.shape[0], 4):
+        raise ConfigError(f"update: expected landmark ids (n,) and pixels (n, 4), got {ids.shape} and {pixels.shape}")
+    if ids.size and not np.issubdtype(ids.dtype, np.integer):
+        raise ConfigError(f"update: landmark ids must be integers, got dtype {ids.dtype}")
+    ids = ids.astype(np.int64, copy=False)
+    if ids.size > 1 and np.any(np.diff(ids) <= 0):
+        raise ConfigError("update: landmark ids must be strictly increasing within a frame")
+    return ids, pixels
+
+
+# ============================================================================= localization
+
+
+class LocalizationFilter:
+    """EKF prediction of the IMU pose only (the report's III-A)::
+
+        μ ← exp(−τ û) μ,     Σ ← F Σ Fᵀ + τ² W,     F = exp(−τ ad(u))
+
+    Starts at the world frame (the first IMU pose) with ``options.initial_pose_covariance``.
+    Observations are ignored (``update`` only counts the frame).
+    """
+
+    mode = "localization"
+
+    def __init__(self, calibration: Calibration | None = None, options: FilterOptions | None = None):
+        self.calibration = calibration
+        self.options = options or FilterOptions()
+        self._W = self.options.W
+        self.imu_T_world = np.eye(4)
+        self._pose_cov = np.array(self.options.initial_pose_covariance, dtype=np.float64)
+        self.stats = RunStats()
+        self.frame_index = -1  # the last frame updated
+        self.last_frame_stats = FrameStats(frame=-1)
+
+    @property
+    def world_T_imu(self) -> np.ndarray:
+        """(4, 4) current IMU pose in the world frame."""
+        return se3_inverse(self.imu_T_world)
+
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        """(6, 6) covariance of the left perturbation of imu_T_world, (v, ω) order."""
+        return self._pose_cov
+
+    def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
+        """μ ← exp(−τ û) μ,  Σ ← F Σ Fᵀ + τ² W  (the report's eq. for the IMU prediction)."""
+        tau = _check_dt(dt_s)
+        self.imu_T_world, self._pose_cov, _ = predict_pose(self.imu_T_world, self._pose_cov, tau,
+                                                           _twist(linear_velocity, angular_velocity), self._W)
+
+    def update(self, ids=None, pixels=None) -> FrameStats:
+        """Count the frame (IMU localization uses no observations)."""
+        self.frame_index += 1
+        n = 0 if ids is None else int(np.size(ids))
+        self.stats.frames += 1
+        self.stats.frames_processed += 1
+        self.stats.observations_total += n
+        self.last_frame_stats = FrameStats(frame=self.frame_index, observations=n)
+        return self.last_frame_stats
+
+    def step(self, frame: Frame) -> FrameStats:
+        """Predict over ``frame.dt_s`` (not for the first frame), then count the frame."""
+        if self.frame_index >= 0:
+            self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
+        return self.update(frame.landmark_ids, frame.pixels)
+
+    def finish(self) -> None:
+        """Nothing to freeze (no landmarks)."""
+        return None
+
+
+# ============================================================================= mapping
+
+
+class MappingFilter:
+    """Landmark mapping with the poses known (the report's III-B).
+
+    Landmarks are independent given the poses, so each keeps its own 3x3 covariance —
+    the exact block-diagonal equivalent of the report's 3M x 3M Σ::
+
+        K = Σ Hᵀ (H Σ Hᵀ + V)⁻¹,   m ← m + K (z − ẑ),   Σ ← (I − K H) Σ
+
+    The pose of each frame is given to :meth:`update` (``world_T_imu``), or else comes
+    from IMU dead reckoning (an internal :class:`LocalizationFilter`, fed by
+    :meth:`predict`). A landmark's track ends when it is not observed in a frame; its
+    estimate then enters the map (seen again, it starts a new track), so memory follows
+    the landmarks in view.
+    """
+
+    mode = "mapping"
+
+    def __init__(self, calibration: Calibration, options: FilterOptions | None = None):
+        self.calibration = calibration
+        self.options = options or FilterOptions()
+        self.model = StereoModel(calibration.camera, calibration.cam_T_imu)
+        self._V = self.options.V
+        self._gate = self.options.gate_threshold
+        self._odometry = LocalizationFilter(calibration, self.options)
+        self._pose_given = None  # world_T_imu given for the current frame, if any
+        # one row per track in progress, with its estimate
+        self.tracks = TrackTable({"mean": ((3,), np.float64, 0.0), "cov": ((3, 3), np.float64, 0.0)})
+        self._builder = MapBuilder()
+        self.stats = RunStats()
+        self._delta = _StatsDelta(self.stats)
+        self._repeated = RepeatDetector(self.options.repeated_observations != "use", self.stats)
+        self._split = self.options.repeated_observations == "split"
+        self.frame_index = -1
+        self.last_frame_stats = FrameStats(frame=-1)
+
+    # --- read access ----------------------------------------------------------------
+    @property
+    def imu_T_world(self) -> np.ndarray:
+        return se3_inverse(self._pose_given) if self._pose_given is not None else self._odometry.imu_T_world
+
+    @property
+    def world_T_imu(self) -> np.ndarray:
+        """(4, 4) pose of the current frame (given, or dead-reckoned)."""
+        return self._pose_given.copy() if self._pose_given is not None else self._odometry.world_T_imu
+
+    @property
+    def pose_covariance(self) -> np.ndarray | None:
+        """Dead-reckoning covariance, or None when the poses are given."""
+        return None if self._pose_given is not None else self._odometry.pose_covariance
+
+    @property
+    def live_landmark_ids(self) -> np.ndarray:
+        """Ids of the landmarks with a track in progress (rejected ones excluded)."""
+        rows = self.tracks.live_rows
+        return self.tracks.ids[~self.tracks["rejected"][rows]]
+
+    @property
+    def live_p_lm_in_world(self) -> np.ndarray:
+        rows = self.tracks.live_rows
+        return self.tracks["mean"][rows[~self.tracks["rejected"][rows]]].copy()
+
+    # --- steps ----------------------------------------------------------------------
+    def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
+        """Dead-reckon the pose: μ ← exp(−τ û) μ (used when no pose is given to update)."""
+        self._odometry.predict(dt_s, linear_velocity, angular_velocity)
+
+    def step(self, frame: Frame, world_T_imu: np.ndarray | None = None) -> FrameStats:
+        """Predict (dead reckoning; not for the first frame), then update with the frame's observations."""
+        if self.frame_index >= 0:
+            self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
+        return self.update(frame.landmark_ids, frame.pixels, world_T_imu=world_T_imu)
+
+    def update(self, ids, pixels, world_T_imu: np.ndarray | None = None) -> FrameStats:
+        """Update the tracks of the landmarks observed in this frame, end the others,
+        start new ones. ``world_T_imu``: the known pose of this frame (else dead reckoning)."""
+        ids_seen, z = _observations(ids, pixels)
+        self.frame_index += 1
+        t = self.frame_index
+        self._delta.begin()
+        self._odometry.update()
+        if world_T_imu is not None:
+            world_T_imu = np.asarray(world_T_imu, dtype=np.float64)
+            if world_T_imu.shape != (4, 4):
+                raise ConfigError(f"update: world_T_imu must be 4x4, got {world_T_imu.shape}")
+        self._pose_given = world_T_imu
+        imu_T_world = self.imu_T_world
+        self.stats.frames += 1
+        self.stats.observations_total += ids_seen.size
+        ids, z, rows, act = self._select(t, ids_seen, z)
+        if np.any(act):
+            self._update_tracks(t, imu_T_world, ids[act], rows[act], z[act])
+        self._end_unseen(ids_seen)
+        if np.any(~act):
+            self._start_tracks(t, imu_T_world, ids[~act], z[~act])
+        self.stats.frames_processed += 1
+        self.last_frame_stats = self._delta.end(t, ids_seen.size, int((~self.tracks["rejected"][
+            self.tracks.live_rows]).sum()), 0.0, 0)
+        return self.last_frame_stats
+
+    def _freeze(self, ids: np.ndarray, status: int) -> None:
+        """Enter the tracks of ``ids`` into the map; a rejected track stays (flagged)
+        while its landmark is in view, so that its observations keep being ignored."""
+        if ids.size:
+            rows = self.tracks.rows(ids)
+            self._builder.add(ids, self.tracks["mean"][rows], self.tracks["cov"][rows],
+                              *self.tracks.entry(ids, rows), status)
+            if status != LANDMARK_REJECTED:
+                self.tracks.remove(ids)
+
+    def _select(self, t: int, ids_seen: np.ndarray, z: np.ndarray):
+        """Drop exact repeats ("skip"; "split" ends the track instead) and observations of
+        rejected landmarks. Returns (ids, pixels, track rows, has-an-estimate mask)."""
+        rep = self._repeated(t, ids_seen, z)
+        rows, rejected = self.tracks.lookup(ids_seen)
+        act = (rows >= 0) & ~rejected  # has a current estimate
+        if self._split and np.any(rep & act):
+            self._freeze(ids_seen[rep & act], LANDMARK_OK)  # the track ends; the repeat starts a new one
+            rep = np.zeros_like(rep)
+            rows, rejected = self.tracks.lookup(ids_seen)
+            act = (rows >= 0) & ~rejected
+        keep = ~rep & ~rejected  # rejected landmarks stay ignored while in view
+        return ids_seen[keep], z[keep], rows[keep], act[keep]
+
+    def _update_tracks(self, t: int, imu_T_world: np.ndarray, ids: np.ndarray, rows: np.ndarray,
+                       z: np.ndarray) -> None:
+        """Gated EKF update of each landmark (K = Σ Hᵀ S⁻¹, m ← m + K r, Σ ← (I − K H) Σ);
+        tracks gated ``max_consecutive_gated`` frames in a row are rejected."""
+        tr = self.tracks
+        tr["mean"][rows], tr["cov"][rows], ok, _ = mapping_update(
+            self.model, imu_T_world, tr["mean"][rows], tr["cov"][rows], z, self._V, self._gate)
+        bad = tr.updated(ids, ok, t, self.stats, self.options.max_consecutive_gated, rows=rows)
+        self._freeze(bad, LANDMARK_REJECTED)
+
+    def _end_unseen(self, ids_seen: np.ndarray) -> None:
+        """Tracks whose landmark is out of view end (a skipped repeat keeps its track alive)."""
+        tr = self.tracks
+        ended = ~in_sorted(tr.ids, ids_seen) & ~tr["rejected"][tr.live_rows]
+        self._freeze(tr.ids[ended], LANDMARK_OK)
+        tr.end_unseen_rejections(ids_seen)
+
+    def _start_tracks(self, t: int, imu_T_world: np.ndarray, ids: np.ndarray, z: np.ndarray) -> None:
+        """Initialize new landmarks by inverting the stereo model (the guards first)."""
+        good = initialization_guard(self.calibration.camera, z, self.options)
+        self.stats.observations_not_initialized += int((~good).sum())
+        if np.any(good):
+            g_ids = ids[good]
+            rows = self.tracks.started(g_ids, t)
+            self.tracks["mean"][rows], self.tracks["cov"][rows] = mapping_initialize(self.model, imu_T_world,
+                                                                                     z[good], self._V)
+            self.stats.landmarks_initialized += int(g_ids.size)
+            self.stats.observations_used += int(g_ids.size)
+
+    def frozen_map(self) -> LandmarkMap:
+        """The map of the tracks ended so far (a copy; the run goes on)."""
+        return self._builder.snapshot()
+
+    def finish(self) -> LandmarkMap:
+        """Freeze the tracks in progress and return the whole map (the filter is done)."""
+        tr = self.tracks
+        self._freeze(tr.ids[~tr["rejected"][tr.live_rows]], LANDMARK_OK)
+        return self._builder.build()
+
+
+# ============================================================================= SLAM
+
+
+class _PendingLandmarks:
+    """Delayed SLAM initialization (``options.init_frames``): a landmark waits until it
+    has been seen in that many consecutive frames, then its first and latest
+    observations must agree with a static point (:func:`static_consistency_nis`).
+    Memory: one row per landmark waiting in view (with the pose and the accumulated
+    Σ τ² of the frame its window started)."""
+
+    def __init__(self, options: FilterOptions, model: StereoModel, tracks: TrackTable, freeze_rejected):
+        self.n = options.init_frames
+        self.options = options
+        self.model = model
+        self.tracks = tracks
+        self.freeze_rejected = freeze_rejected
+        # start: first frame of the waiting window; last: last frame seen while waiting
+        self.waiting = IdTable({"start": ((), np.int64, -1), "last": ((), np.int64, -2),
+                                "pixels": ((4,), np.float64, 0.0), "failures": ((), np.int64, 0),
+                                "pose": ((4, 4), np.float64, 0.0), "tau2": ((), np.float64, 0.0)}, capacity=16)
+
+    def forget_unseen(self, ids_seen: np.ndarray) -> None:
+        """Landmarks out of view stop waiting (seen again, they start over)."""
+        if self.n > 1 and len(self.waiting):
+            ids = self.waiting.ids
+            self.waiting.remove(ids[~in_sorted(ids, ids_seen)])
+
+    def admit(self, ids: np.ndarray, z: np.ndarray, t: int, imu_T_world: np.ndarray, tau2_sum: float,
+              stats: RunStats):
+        """Return the (ids, pixels) to initialize now among candidates observed at t.
+
+        ``tau2_sum``: Σ τ² of the prediction steps so far (the IMU noise between two
+        frames is (Σ τ²)(t) − (Σ τ²)(t₀) times W)."""
+        if self.n <= 1:
+            return ids, z
+        w = self.waiting
+        rows = w.rows(ids)
+        w.add(ids[rows < 0])
+        rows = w.rows(ids)
+        start, last, pixels, failures = w["start"], w["last"], w["pixels"], w["failures"]
+        restart = last[rows] != t - 1
+        self._open(rows[restart], t, z[restart], imu_T_world, tau2_sum)
+        last[rows] = t
+        ready = ~restart & (t - start[rows] + 1 >= self.n)
+        if not np.any(ready):
+            return ids[:0], z[:0]
+        r_ids, r_z, r_rows = ids[ready], z[ready], rows[ready]
+        t0 = start[r_rows]
+        opts = self.options
+        nis = np.empty(r_ids.size)
+        for f0 in np.unique(t0):  # usually one start frame per batch
+            sel = t0 == f0
+            first = r_rows[sel][0]
+            Q = (tau2_sum - w["tau2"][first]) * opts.W  # Σ τ² W between the two frames
+            nis[sel] = static_consistency_nis(self.model, imu_T_world, r_z[sel], w["pose"][first],
+                                              pixels[r_rows[sel]], opts.V, Q)
+        ok = nis <= opts.gate_threshold
+        bad_rows = r_rows[~ok]
+        if bad_rows.size:
+            failures[bad_rows] += 1
+            stats.observations_gated += int(bad_rows.size)
+            # try again from the latest observation; a second failure rejects the landmark
+            self._open(bad_rows, t, r_z[~ok], imu_T_world, tau2_sum)
+            out_sel = ~ok & (failures[r_rows] >= 2)
+            if np.any(out_sel):
+                out = r_ids[out_sel]
+                w.remove(out)
+                rows_out = self.tracks.started(out, t)
+                self.tracks["rejected"][rows_out] = True
+                stats.landmarks_rejected += int(out.size)
+                p_w, cov = mapping_initialize(self.model, imu_T_world, r_z[out_sel], opts.V)
+                self.freeze_rejected(out, p_w, cov)
+        w.remove(r_ids[ok])
+        return r_ids[ok], r_z[ok]
+
+    def _open(self, rows: np.ndarray, t: int, z: np.ndarray, imu_T_world: np.ndarray, tau2_sum: float) -> None:
+        """(Re)start the waiting window of ``rows`` at frame t with pixels ``z``."""
+        w = self.waiting
+        w["start"][rows] = t
+        w["pixels"][rows] = z
+        w["pose"][rows] = imu_T_world
+        w["tau2"][rows] = tau2_sum
+
+
+class SlamFilter:
+    """The joint EKF over the IMU pose and the landmarks (the report's III-C).
+
+    State: the inverse IMU pose ``imu_T_world`` (left perturbation) and the positions of
+    the landmarks with a live track (see :class:`~vislam.core.state.SlamState`).
+
+    ``reference=True`` uses the plain dense Joseph-form update
+    (:func:`~vislam.core.updaters.slam_update_reference`) — slow, for tests.
+    """
+
+    mode = "slam"
+
+    def __init__(self, calibration: Calibration, options: FilterOptions | None = None, reference: bool = False):
+        self.calibration = calibration
+        self.options = opts = options or FilterOptions()
+        self.model = StereoModel(calibration.camera, calibration.cam_T_imu)
+        self._V, self._W = opts.V, opts.W
+        self._gate = opts.gate_threshold
+        self._drift_gate = opts.drift_threshold
+        self._oc = opts.ekf == "oc"
+        self._motion = opts.landmark_motion
+        self._velocity_var = opts.landmark_velocity_std_mps**2
+        self._accel_var = opts.landmark_acceleration_std_mps2**2
+        self._update = slam_update_reference if reference else slam_update
+        self.state = SlamState(np.eye(4), opts.initial_pose_covariance, lm_dim=6 if self._motion else 3)
+        # one row per track in progress; the drift test's per-landmark sums live there too
+        self.tracks = TrackTable({"drift_sum": ((4,), np.float64, 0.0), "drift_n": ((), np.float64, 0.0)})
+        self._builder = MapBuilder()
+        self.stats = RunStats()
+        self._delta = _StatsDelta(self.stats)
+        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats)
+        self._split = opts.repeated_observations == "split"
+        self._last_correction = np.zeros(6)  # pose correction of the last update (OC transition)
+        self._tau2_sum = 0.0  # Σ τ² of the predictions so far (delayed initialization)
+        self._pending = _PendingLandmarks(opts, self.model, self.tracks, self._freeze_rejected_new)
+        self.frame_index = -1
+        self.last_frame_stats = FrameStats(frame=-1)
+        #: (ids, p_lm_in_world, rejected) of the landmarks frozen into the map in the last frame.
+        self.last_frozen = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=bool))
+        self._frozen_parts: list = []
+        self.failed: str | None = None
+
+    # --- read access ----------------------------------------------------------------
+    @property
+    def imu_T_world(self) -> np.ndarray:
+        """(4, 4) the filter's pose variable μ (the report's inverse IMU pose)."""
+        return self.state.imu_T_world
+
+    @property
+    def world_T_imu(self) -> np.ndarray:
+        """(4, 4) current IMU pose in the world frame."""
+        return se3_inverse(self.state.imu_T_world)
+
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        """(6, 6) covariance of the left perturbation of imu_T_world, (v, ω) order (a copy)."""
+        return self.state.pose_cov.copy()
+
+    @property
+    def live_landmark_ids(self) -> np.ndarray:
+        """(L,) ids of the landmarks in the state."""
+        return self.state.landmark_ids.copy()
+
+    @property
+    def live_p_lm_in_world(self) -> np.ndarray:
+        """(L, 3) positions of the landmarks in the state (m)."""
+        return self.state.p_lm_in_world.copy()
+
+    @property
+    def live_landmark_covariance(self) -> np.ndarray:
+        """(L, 3, 3) marginal covariances of the landmarks in the state (m²)."""
+        return self.state.landmark_cov(np.arange(self.state.n_landmarks))
+
+    def frozen_map(self) -> LandmarkMap:
+        """The map of the landmarks frozen so far (marginalized or rejected; a copy)."""
+        return self._builder.snapshot()
+
+    # --- the frame --------------------------------------------------------------------
+    def step(self, frame: Frame) -> FrameStats:
+        """:meth:`predict` over ``frame.dt_s`` with the frame's IMU sample (not for the
+        first frame), then :meth:`update` with its observations."""
+        if self.frame_index >= 0:
+            self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
+        return self.update(frame.landmark_ids, frame.pixels)
+
+    def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
+        """Step 1, the report's prediction::
+
+            μ ← exp(−τ û) μ,   Σ_pp ← F Σ_pp Fᵀ + τ² W,   Σ_pl ← F Σ_pl,   F = exp(−τ ad(u))
+
+        (OC-EKF: F* = F Ad(exp(ε)) with ε the last update's correction; with the landmark
+        motion model, m ← m + τ v for every landmark.)"""
+        self._require_healthy()
+        tau = _check_dt(dt_s)
+        u = _twist(linear_velocity, angular_velocity)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None)
+            if self._motion:
+                self.state.predict_landmarks(tau, self._accel_var)
+        self._last_correction = np.zeros(6)  # used once: the next correction comes with the next update
+        self._tau2_sum += tau * tau
+
+    def update(self, ids, pixels) -> FrameStats:
+        """Steps 2–7 with the stereo observations of a new frame: ``ids`` (n,) strictly
+        increasing, ``pixels`` (n, 4) ``[uL, vL, uR, vR]``. Raises EstimationError (and
+        the filter stops) on a numerical failure."""
+        self._require_healthy()
+        ids_seen, z = _observations(ids, pixels)
+        self.frame_index += 1
+        t = self.frame_index
+        self.stats.frames += 1
+        self.stats.observations_total += ids_seen.size
+        self._delta.begin()
+        self._frozen_parts = []
+        nis_sum, nis_count = 0.0, 0
+        try:
+            # overflow/NaN is detected by the health check and reported as an error
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                # unobservable directions of the pose at the prior (OC variant)
+                N_pose = -se3_adjoint(self.state.imu_T_world) if self._oc else None
+                ids, z, rows = self._select(t, ids_seen, z)
+                slots = self.state.slots_of(ids)
+                live = slots >= 0
+                correction = np.zeros(6)
+                if np.any(live):
+                    correction, ok, nis = self._update_live(slots[live], ids[live], rows[live], z[live], N_pose)
+                    nis_sum, nis_count = float(nis[ok].sum()), int(ok.sum())
+                    self._reject(t, ids[live], rows[live], ok)
+                self._marginalize_ended(ids_seen)
+                if np.any(~live):
+                    self._initialize_new(t, ids[~live], z[~live], N_pose)
+                if self._oc:
+                    self._last_correction = correction
+                self.stats.max_state_landmarks = max(self.stats.max_state_landmarks, self.state.n_landmarks)
+                self._check_health(t)
+        except (EstimationError, GeometryError, np.linalg.LinAlgError) as exc:
+            self.failed = str(exc) if isinstance(exc, EstimationError) else f"numerical failure at frame {t}: {exc}"
+            raise EstimationError(self.failed, frame=t) from exc
+        self.stats.frames_processed += 1
+        self.last_frame_stats = self._delta.end(t, ids_seen.size, self.state.n_landmarks, nis_sum, nis_count)
+        self._collect_frozen()
+        return self.last_frame_stats
+
+    # --- steps 2-7 ----------------------------------------------------------------------
+    def _select(self, t: int, ids_seen: np.ndarray, z: np.ndarray):
+        """Step 2: drop exact repeats of the previous frame's pixels ("skip"; "split" ends
+        the track and starts a new one) and observations of rejected landmarks.
+        Returns (ids, pixels, track rows)."""
+        rep = self._repeated(t, ids_seen, z)
+        if self._split and np.any(rep):
+            slots_rep = self.state.slots_of(ids_seen[rep])
+            self._freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one
+            rep = np.zeros_like(rep)
+        track_rows, rejected = self.tracks.lookup(ids_seen)
+        usable = ~rep & ~rejected
+        return ids_seen[usable], z[usable], track_rows[usable]
+
+    def _update_live(self, slots: np.ndarray, ids: np.ndarray, rows: np.ndarray, z: np.ndarray, N_pose):
+        """Step 3, the report's update of pose and landmarks in the state::
+
+            r = z − M π(cam_T_imu μ m),   S = H Σ Hᵀ + V,   gate: rᵀ S⁻¹ r ≤ χ²₄(p)
+            K = Σ Hᵀ S⁻¹,   μ ← exp((K r)_pose^) μ,   m ← m + (K r)_lm,   Σ ← Σ − K S Kᵀ
+
+        then the innovation drift test and the Schmidt-Kalman probation of young
+        landmarks. Returns (pose correction ε, accepted mask, NIS per observation)."""
+        opts, state, tracks = self.options, self.state, self.tracks
+        V = self._V
+        drift = self._drift_gate < np.inf
+        r, Hp, Hl, in_front, nis, blocks = slam_predict_nis(state, self.model, slots, z, V, N_pose)
+        ok = in_front & (nis <= self._gate)
+        young = tracks["nobs"][rows] <= opts.probation_frames  # init counts as 1
+        joint = ok & ~young
+        if drift and np.any(ok):
+            Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
+        correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
+        if drift and np.any(ok):
+            ok = self._drift_test(rows, ok, r, Ht, Lt, correction)
+        probe = ok & young
+        if np.any(probe):
+            # slots are unchanged by the joint update; re-linearize at the new pose
+            r2, Hp2, Hl2, _, _, _ = slam_predict_nis(state, self.model, slots[probe], z[probe], V, N_pose)
+            schmidt_update(state, slots[probe], r2, Hp2, Hl2, V)  # K_lm only: the pose is "considered"
+        return correction, ok, nis
+
+    def _drift_test(self, rows, ok, r, Ht, Lt, correction) -> np.ndarray:
+        """Innovation drift test: beyond the frame's consensus pose correction ε, a static
+        landmark's whitened residuals w = L⁻¹ (r − H̃ ε) are white, so Σ w / √k ~ N(0, I₄);
+        a point on a moving vehicle drifts one way. Returns ``ok`` without the movers
+        (they are rejected at once by :meth:`_reject`)."""
+        tracks = self.tracks
+        w = np.linalg.solve(Lt, (r - Ht @ correction)[:, :, None])[:, :, 0]
+        drift_sum, drift_n = tracks["drift_sum"], tracks["drift_n"]
+        drift_sum[rows] += np.where(ok[:, None], w, 0.0)
+        drift_n[rows] += ok
+        stat = np.einsum("ki,ki->k", drift_sum[rows], drift_sum[rows]) / np.maximum(drift_n[rows], 1)
+        moving = ok & (drift_n[rows] >= 2) & (stat > self._drift_gate)
+        if np.any(moving):
+            self.stats.landmarks_moving += int(moving.sum())
+            ok = ok & ~moving
+            tracks["consecutive"][rows[moving]] = max(self.options.max_consecutive_gated, 1) - 1
+        return ok
+
+    def _reject(self, t: int, ids: np.ndarray, rows: np.ndarray, ok: np.ndarray) -> None:
+        """Step 4: a landmark whose observations failed the gate ``max_consecutive_gated``
+        frames in a row leaves the state and enters the map flagged as rejected."""
+        bad = self.tracks.updated(ids, ok, t, self.stats, self.options.max_consecutive_gated, rows=rows)
+        self._freeze(self.state.slots_of(bad), LANDMARK_REJECTED)
+
+    def _marginalize_ended(self, ids_seen: np.ndarray) -> None:
+        """Step 5: landmarks not observed in this frame leave the state — dropping their
+        rows and columns of Σ is the exact marginal of a Gaussian — and their mean and
+        marginal covariance are frozen into the map (``keep_all_landmarks`` keeps them)."""
+        state = self.state
+        if not self.options.keep_all_landmarks and state.n_landmarks:
+            # a skipped repeat keeps its track alive
+            self._freeze(np.flatnonzero(~in_sorted(state.landmark_ids, ids_seen)), LANDMARK_OK)
+        self.tracks.end_unseen_rejections(ids_seen)
+        self._pending.forget_unseen(ids_seen)
+
+    def _initialize_new(self, t: int, ids: np.ndarray, z: np.ndarray, N_pose) -> None:
+        """Step 6: new landmarks, from the first observation that passes the guards, by
+        inverting the stereo model — m = μ⁻¹ cam_T_imu⁻¹ π⁻¹(M⁻¹ z) — with the covariance
+        propagated from the pixel noise and the pose (and its correlation with the pose)."""
+        good = initialization_guard(self.calibration.camera, z, self.options)
+        self.stats.observations_not_initialized += int((~good).sum())
+        if np.any(good):
+            g_ids, g_z = self._pending.admit(ids[good], z[good], t, self.state.imu_T_world, self._tau2_sum, self.stats)
+            if g_ids.size:
+                slam_initialize_landmarks(self.state, self.model, g_ids, g_z, self._V, N_pose, self._velocity_var)
+                self.tracks.started(g_ids, t)
+                self.stats.landmarks_initialized += int(g_ids.size)
+                self.stats.observations_used += int(g_ids.size)
+
+    def _check_health(self, t: int) -> None:
+        """Step 7: the state and Σ must stay finite and Σ's diagonal non-negative."""
+        if not self.state.is_finite():
+            raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
+        if np.any(np.diagonal(self.state.cov) < -1e-9):
+            raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
+
+    def _require_healthy(self) -> None:
+        if self.failed is not None:
+            raise EstimationError(f"the filter stopped earlier ({self.failed}); start a new one")
+
+    # --- the map ------------------------------------------------------------------------
+    def _freeze(self, slots: np.ndarray, status: int) -> None:
+        """Move the landmarks in ``slots`` from the state into the map."""
+        if slots.size == 0:
+            return
+        state = self.state
+        ids = state.landmark_ids[slots]
+        p = state.p_lm_in_world[slots]
+        self._builder.add(ids, p, state.landmark_cov(slots), *self.tracks.entry(ids), status, state.v_lm_in_world[slots])
+        self._frozen_parts.append((ids, p, np.full(ids.size, status == LANDMARK_REJECTED)))
+        state.remove_slots(slots)
+        if status != LANDMARK_REJECTED:  # a rejected track stays (flagged) while in view
+            self.tracks.remove(ids)
+
+    def _freeze_rejected_new(self, ids: np.ndarray, p: np.ndarray, cov: np.ndarray) -> None:
+        """A landmark rejected by the static check of delayed initialization (never in the state)."""
+        self._builder.add(ids, p, cov, *self.tracks.entry(ids), LANDMARK_REJECTED)
+        self._frozen_parts.append((ids, p, np.ones(ids.size, dtype=bool)))
+
+    def _collect_frozen(self) -> None:
+        parts = self._frozen_parts
+        if parts:
+            self.last_frozen = (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                                np.concatenate([p[2] for p in parts]))
+        else:
+            self.last_frozen = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=bool))
+        self._frozen_parts = []
+
+    def finish(self) -> LandmarkMap:
+        """Freeze the landmarks still in the state (after a failure, only those whose mean
+        and covariance are finite) and return the whole map. The filter is done."""
+        state = self.state
+        if state.n_landmarks:
+            slots = np.arange(state.n_landmarks)
+            if self.failed is not None:
+                finite = np.all(np.isfinite(state.p_lm_in_world), axis=1)
+                finite &= np.all(np.isfinite(state.landmark_cov(slots)), axis=(1, 2))
+                slots = slots[finite]
+            self._freeze(slots, LANDMARK_OK)
+        self._frozen_parts = []
+        return self._builder.build()
