@@ -288,6 +288,7 @@ def interrupted_message(command: str, stage) -> str:
 
 def run(args) -> int:
     from vislam.core.estimators import run as run_estimator
+    from vislam.core.results import model_fit_warnings
     from vislam.tools.comparison import evaluate_run, injected_noise_record, stage_evaluation
     from vislam.tools.config import load_known_poses
     from vislam.tools.dataset_io import load_sequence
@@ -325,6 +326,7 @@ def run(args) -> int:
                 result = run_estimator(sequence, args.mode, options, progress=progress, world_T_imu=poses)
             finally:
                 close()
+            extra["warnings"] = model_fit_warnings(result)
             if gt is not None:
                 name = dataset.get("label") or sequence.name
                 extra["evaluation"] = stage_evaluation(stage.staging, evaluate_run(result, gt, sequence),
@@ -342,6 +344,8 @@ def finish(summary: dict, result, stage, quiet: bool) -> int:
     """Print the human summary (unless quiet); a partial run is an error (one line)."""
     if not quiet:
         _print(format_summary(summary, stage.out_dir))
+        for warning in summary.get("warnings") or ():
+            print(f"vislam: warning: {warning}", file=sys.stderr)
     if result.partial:
         raise EstimationError(f"{result.error}; stopped after {result.stats.frames_processed} of "
                               f"{result.stats.frames} frames; partial outputs written to {stage.out_dir} "

@@ -593,6 +593,8 @@ class SlamFilter:
                 if np.any(live):
                     correction, ok, nis = self._update_live(slots[live], ids[live], rows[live], z[live], N_pose)
                     nis_sum, nis_count = float(nis[ok].sum()), int(ok.sum())
+                    self.stats.nis_sum += nis_sum
+                    self.stats.nis_count += nis_count
                     self._reject(t, ids[live], rows[live], ok)
                 self._marginalize_ended(ids_seen)
                 if np.any(~live):
