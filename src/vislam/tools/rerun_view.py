@@ -103,7 +103,7 @@ def import_rerun():
 class _Blocks:
     """Points that only accumulate (trajectory, frozen map), split into blocks of at most
     ``capacity`` points. :meth:`add` returns (block index, all points of the current
-    block so far, and their attributes), which is what is logged at this frame."""
+    block so far, their attributes, whether the block is new): what is logged at this frame."""
 
     def __init__(self, capacity: int, overlap: int = 0):
         self.capacity = capacity
@@ -112,8 +112,9 @@ class _Blocks:
         self.points = np.zeros((0, 3))
         self.attrs: dict[str, np.ndarray] = {}
 
-    def add(self, points: np.ndarray, **attrs: np.ndarray) -> tuple[int, np.ndarray, dict[str, np.ndarray]]:
-        if self.index < 0 or len(self.points) + len(points) > self.capacity and len(self.points) > self.overlap:
+    def add(self, points: np.ndarray, **attrs: np.ndarray) -> tuple[int, np.ndarray, dict[str, np.ndarray], bool]:
+        new = self.index < 0 or len(self.points) + len(points) > self.capacity and len(self.points) > self.overlap
+        if new:
             keep = self.overlap if self.index >= 0 else 0
             self.index += 1
             self.points = self.points[len(self.points) - keep:]
@@ -121,7 +122,7 @@ class _Blocks:
         self.points = np.concatenate([self.points, points])
         for k, v in attrs.items():
             self.attrs[k] = np.concatenate([self.attrs[k], v]) if k in self.attrs else np.asarray(v)
-        return self.index, self.points, self.attrs
+        return self.index, self.points, self.attrs, new
 
 
 def _has_display() -> bool:
@@ -138,16 +139,35 @@ def _viewer_executable() -> str | None:
     return shutil.which("rerun")
 
 
-def _ellipsoid(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(half sizes at SIGMA_SCALE σ, rotation quaternion xyzw) of a 3x3 covariance."""
-    from scipy.spatial.transform import Rotation
+def _quaternion_xyzw(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
+    m = R
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    candidates = np.array([trace, m[0, 0], m[1, 1], m[2, 2]])
+    i = int(np.argmax(candidates))
+    if i == 0:
+        w = 0.5 * np.sqrt(1.0 + trace)
+        q = np.array([(m[2, 1] - m[1, 2]) / (4 * w), (m[0, 2] - m[2, 0]) / (4 * w), (m[1, 0] - m[0, 1]) / (4 * w), w])
+    else:
+        a, b, c = (i - 1), i % 3, (i + 1) % 3  # the axis with the largest diagonal entry, then the next two
+        v = 0.5 * np.sqrt(max(1.0 + 2.0 * m[a, a] - trace, 0.0))
+        q = np.empty(4)
+        q[a] = v
+        q[b] = (m[b, a] + m[a, b]) / (4 * v)
+        q[c] = (m[c, a] + m[a, c]) / (4 * v)
+        q[3] = (m[c, b] - m[b, c]) / (4 * v)
+    return q / np.linalg.norm(q)
 
+
+def _ellipsoid(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(half sizes at SIGMA_SCALE σ, rotation quaternion xyzw) of a 3x3 covariance: the
+    ellipsoid's axes are the eigenvectors, its half sizes SIGMA_SCALE √eigenvalues."""
     cov = 0.5 * (cov + cov.T)
     eigval, eigvec = np.linalg.eigh(cov)
     if np.linalg.det(eigvec) < 0:
         eigvec[:, 0] = -eigvec[:, 0]
     half = SIGMA_SCALE * np.sqrt(np.clip(eigval, 0.0, None))
-    return half, Rotation.from_matrix(eigvec).as_quat()
+    return half, _quaternion_xyzw(eigvec)
 
 
 def _check_array(name: str, a, shape: tuple) -> np.ndarray:
@@ -199,7 +219,7 @@ class RerunRecorder:
                 if url is not None:
                     sinks.append(rr.GrpcSink(url))
             if sinks:
-                self._rec.set_sinks(*sinks, default_blueprint=self._blueprint())
+                self._rec.set_sinks(*sinks)
             if recording_name:
                 self._rec.send_recording_name(recording_name)
             self._log_static(camera, cam_T_imu)
@@ -209,6 +229,9 @@ class RerunRecorder:
         self._trajectory = _Blocks(BLOCK_POINTS, overlap=1)
         self._map = _Blocks(BLOCK_POINTS)
         self._time_kind: str | None = None
+        self._blueprint_sent = False
+        #: (centre, half width) of the xy region the top view shows; set by log_result
+        self._top_view: tuple[np.ndarray, float] | None = None
         self.frames_logged = 0
 
     # ------------------------------------------------------------------ setup
@@ -230,20 +253,27 @@ class RerunRecorder:
         self.spawned = True
         return f"rerun+http://127.0.0.1:{VIEWER_PORT}/proxy"
 
-    def _blueprint(self):
+    def _send_blueprint(self, stat_names) -> None:
+        """The layout: a 3D view and a top view (tabs) of the world, the IMU height and one
+        plot per statistic known at the first frame (later ones are in the recording, without a plot)."""
         import rerun.blueprint as rrb
 
-        return rrb.Blueprint(
+        centre, half_width = self._top_view or (np.zeros(3), 150.0)
+        eye = np.array([centre[0], centre[1], centre[2] + 2.5 * half_width])
+        top = rrb.Spatial3DView(origin="world", name="top view",
+                                eye_controls=rrb.EyeControls3D(position=eye, look_target=centre, eye_up=(1.0, 0.0, 0.0)))
+        plots = [rrb.TimeSeriesView(origin="height", name="IMU height (m)")]
+        plots += [rrb.TimeSeriesView(origin=f"stats/{name}", name=name) for name in stat_names]
+        blueprint = rrb.Blueprint(
             rrb.Horizontal(
-                rrb.Spatial3DView(origin="world", name="3D (scrub the frame timeline)"),
-                rrb.Vertical(
-                    rrb.TimeSeriesView(origin="height", name="IMU height (m)"),
-                    rrb.TimeSeriesView(origin="stats", name="per-frame statistics"),
-                ),
+                rrb.Tabs(rrb.Spatial3DView(origin="world", name="3D"), top, active_tab=0),
+                rrb.Vertical(*plots),
                 column_shares=[3, 1],
             ),
             collapse_panels=False,
         )
+        self._rec.send_blueprint(blueprint, make_active=True, make_default=True)
+        self._blueprint_sent = True
 
     def _log_static(self, camera, cam_T_imu: np.ndarray) -> None:
         rr = self._rr
@@ -290,19 +320,22 @@ class RerunRecorder:
             raise RuntimeError("RerunRecorder used after close()")
         rr, rec = self._rr, self._rec
         pose = _check_array("world_T_imu", world_T_imu, (4, 4))
+        if not self._blueprint_sent:
+            self._send_blueprint(list(stats or ()))
         self._set_time(t, timestamp_s)
         R, p = pose[:3, :3], pose[:3, 3]
-        rec.log("world/imu", rr.Transform3D(translation=p, mat3x3=R))
+        rec.log("world/imu", rr.Transform3D.from_fields(translation=p, mat3x3=R))  # 3x faster than Transform3D()
         rec.log("height/imu_z_m", rr.Scalars(float(p[2])))
 
-        k, strip, _ = self._trajectory.add(p[None, :])
-        rec.log(f"world/trajectory/{k}", rr.LineStrips3D([strip], colors=[_TRAJECTORY_COLOR],
-                                                         radii=rr.Radius.ui_points(1.5)))
+        k, strip, _, new = self._trajectory.add(p[None, :])
+        if new:  # the static look of a new block
+            rec.log(f"world/trajectory/{k}", rr.LineStrips3D.from_fields(colors=[_TRAJECTORY_COLOR],
+                                                                         radii=rr.Radius.ui_points(1.5)), static=True)
+        rec.log(f"world/trajectory/{k}", rr.LineStrips3D([strip]))
         if pose_covariance is not None:
             cov = _check_array("pose_covariance", pose_covariance, (6, 6))
             half, quat = _ellipsoid(R @ cov[:3, :3] @ R.T)
-            rec.log("world/position_covariance", rr.Ellipsoids3D(centers=[p], half_sizes=[half],
-                                                                 quaternions=[rr.Quaternion(xyzw=quat)]))
+            rec.log("world/position_covariance", rr.Ellipsoids3D(centers=[p], half_sizes=[half], quaternions=[quat]))
 
         live_p = _check_array("live_p_lm_in_world", live_p_lm_in_world, (None, 3)).reshape(-1, 3)
         live_ids = np.asarray(live_ids, dtype=np.int64).reshape(-1)
@@ -318,9 +351,11 @@ class RerunRecorder:
             if fid.shape[0] != n or rej.shape[0] != n:
                 raise ValueError("frozen_ids, frozen_p_lm_in_world and frozen_rejected differ in length")
             colors = np.where(rej[:, None], np.array(_REJECTED_COLOR), np.array(_MAP_COLOR)).astype(np.uint8)
-            k, points, attrs = self._map.add(fp, ids=fid, colors=colors)
-            rec.log(f"world/landmarks/map/{k}", rr.Points3D(points, colors=attrs["colors"],
-                                                            radii=rr.Radius.ui_points(2.5)),
+            k, points, attrs, new = self._map.add(fp, ids=fid, colors=colors)
+            if new:  # the static look of a new block
+                rec.log(f"world/landmarks/map/{k}", rr.Points3D.from_fields(radii=rr.Radius.ui_points(2.5)),
+                        static=True)
+            rec.log(f"world/landmarks/map/{k}", rr.Points3D(points, colors=attrs["colors"]),
                     rr.AnyValues(landmark_id=attrs["ids"]))
 
         for name, value in (stats or {}).items():
@@ -339,6 +374,10 @@ class RerunRecorder:
         """
         n = int(result.world_T_imu.shape[0])
         timestamps = np.asarray(result.timestamps_s)[:n]
+        if n and not self._blueprint_sent:
+            positions = result.world_T_imu[:, :3, 3]
+            lo, hi = positions.min(axis=0), positions.max(axis=0)
+            self._top_view = (0.5 * (lo + hi), max(0.5 * float(np.max(hi[:2] - lo[:2])), 10.0))
         cov = result.pose_covariance
         frame_ms = np.asarray(result.stats.frame_seconds, dtype=np.float64) * 1e3
         extra_stats: dict[str, np.ndarray] = {}
