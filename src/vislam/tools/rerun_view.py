@@ -396,7 +396,7 @@ class RerunRecorder:
             order_first = np.argsort(first, kind="stable")
             order_last = np.argsort(last, kind="stable")
             starts = np.searchsorted(first[order_first], np.arange(n + 1), side="left")
-            ends = np.searchsorted(last[order_last], np.arange(-1, n), side="right")
+            ends = np.searchsorted(last[order_last], np.arange(-2, n - 1), side="right")  # count of last <= t - 2
             live_set = np.zeros(len(lm), dtype=bool)
         for t in range(n):
             live_ids, live_p = np.zeros(0, np.int64), np.zeros((0, 3))
