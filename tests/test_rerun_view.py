@@ -215,7 +215,8 @@ def test_blocks_keep_the_whole_trajectory_and_map(tmp_path, drive, monkeypatch):
                           np.arange(k) % 2 == 0)
             next_id += k
     rec_ = load(path)
-    strips = sorted((e for e in rec_.rows if e.startswith("/world/trajectory/")), key=lambda e: int(e.rsplit("/", 1)[1]))
+    strips = sorted((e for e in rec_.rows if e.startswith("/world/trajectory/")),
+                    key=lambda e: int(e.rsplit("/", 1)[1]))
     assert len(strips) > 1
     points = []
     for i, entity in enumerate(strips):
@@ -283,6 +284,16 @@ def test_spawn_without_a_viewer_warns_and_records(tmp_path, drive, monkeypatch, 
     assert load(path).series("/world/imu", "Transform3D:translation")[0].tolist() == [0]
 
 
+def test_spawn_only_without_a_viewer_records_nothing(drive, monkeypatch, caplog):
+    monkeypatch.setattr(rerun_view, "_viewer_executable", lambda: None)
+    monkeypatch.setattr(rerun_view, "_has_display", lambda: True)
+    with caplog.at_level(logging.WARNING, logger="vislam.tools.rerun_view"):
+        with RerunRecorder(drive.sequence.camera, drive.sequence.cam_T_imu, spawn=True) as rec:
+            rec.log_frame(0, 0.0, np.eye(4), None, [], np.zeros((0, 3)))
+    assert not rec.spawned and not rec.enabled and rec.frames_logged == 1
+    assert "no 'rerun' viewer executable" in caplog.text
+
+
 def test_unwritable_path_is_an_output_error(tmp_path, drive):
     blocker = tmp_path / "file"
     blocker.write_text("")
@@ -329,3 +340,27 @@ def test_cli_unwritable_rerun_path_fails_before_any_output(tmp_path, sim_file, c
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("vislam run: error:") and str(blocker) in lines[0]
     assert not out.exists()  # the output directory the run would have created is not left behind
+
+
+@pytest.mark.parametrize("where", ["estimator", "outputs"])
+def test_cli_interrupted_or_failed_run_leaves_no_recording(tmp_path, sim_file, monkeypatch, capsys, where):
+    """Ctrl-C during the run, or a failure writing the other outputs: no .rrd, no temporary file."""
+    from vislam.core import estimators
+    from vislam.tools import outputs
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    def failing(*args, **kwargs):
+        raise OutputError("disk full (simulated)")
+
+    if where == "estimator":
+        monkeypatch.setattr(estimators, "run_slam", interrupted)
+    else:
+        monkeypatch.setattr(outputs, "write_run_outputs", failing)
+    rrd_dir = tmp_path / "rrd"
+    rrd_dir.mkdir()
+    code = main(["run", str(sim_file), "--out", str(tmp_path / "out"), "--rerun", str(rrd_dir / "x.rrd"), "--quiet"])
+    capsys.readouterr()
+    assert code == (130 if where == "estimator" else OutputError.exit_code)
+    assert list(rrd_dir.iterdir()) == []

@@ -198,10 +198,17 @@ class RerunRecorder:
         self._rr = rr
         self.path = Path(path) if path is not None else None
         self.spawned = False
+        self.enabled = False
         self._closed = False
         self._atomic = None
-        self._tmp: Path | None = None
         cam_T_imu = _check_array("cam_T_imu", cam_T_imu, (4, 4))
+        self._trajectory = _Blocks(BLOCK_POINTS, overlap=1)
+        self._map = _Blocks(BLOCK_POINTS)
+        self._time_kind: str | None = None
+        self._blueprint_sent = False
+        #: (centre, half width) of the xy region the top view shows; set by log_result
+        self._top_view: tuple[np.ndarray, float] | None = None
+        self.frames_logged = 0
         self._rec = rr.RecordingStream(application_id, recording_id=uuid.uuid4())
         rr.set_log_time_enabled(False, recording=self._rec)  # the frame and time timelines only
         try:
@@ -212,27 +219,23 @@ class RerunRecorder:
                 if self.path.is_dir():
                     raise OutputError(f"{self.path}: is a directory (a .rrd file path is expected)")
                 self._atomic = atomic_path(self.path)
-                self._tmp = self._atomic.__enter__()
-                sinks.append(rr.FileSink(str(self._tmp)))
+                sinks.append(rr.FileSink(str(self._atomic.__enter__())))  # the temporary file
             if spawn:
                 url = self._spawn_viewer()
                 if url is not None:
                     sinks.append(rr.GrpcSink(url))
-            if sinks:
-                self._rec.set_sinks(*sinks)
+            #: False when there is nowhere to record to (no path, no viewer): then nothing is logged,
+            #: rather than buffered in memory for nobody
+            self.enabled = bool(sinks)
+            if not self.enabled:
+                return
+            self._rec.set_sinks(*sinks)
             if recording_name:
                 self._rec.send_recording_name(recording_name)
             self._log_static(camera, cam_T_imu)
         except BaseException:
             self.abort()
             raise
-        self._trajectory = _Blocks(BLOCK_POINTS, overlap=1)
-        self._map = _Blocks(BLOCK_POINTS)
-        self._time_kind: str | None = None
-        self._blueprint_sent = False
-        #: (centre, half width) of the xy region the top view shows; set by log_result
-        self._top_view: tuple[np.ndarray, float] | None = None
-        self.frames_logged = 0
 
     # ------------------------------------------------------------------ setup
 
@@ -260,8 +263,8 @@ class RerunRecorder:
 
         centre, half_width = self._top_view or (np.zeros(3), 150.0)
         eye = np.array([centre[0], centre[1], centre[2] + 2.5 * half_width])
-        top = rrb.Spatial3DView(origin="world", name="top view",
-                                eye_controls=rrb.EyeControls3D(position=eye, look_target=centre, eye_up=(1.0, 0.0, 0.0)))
+        eye_controls = rrb.EyeControls3D(position=eye, look_target=centre, eye_up=(1.0, 0.0, 0.0))  # x up on screen
+        top = rrb.Spatial3DView(origin="world", name="top view", eye_controls=eye_controls)
         plots = [rrb.TimeSeriesView(origin="height", name="IMU height (m)")]
         plots += [rrb.TimeSeriesView(origin=f"stats/{name}", name=name) for name in stat_names]
         blueprint = rrb.Blueprint(
@@ -318,6 +321,9 @@ class RerunRecorder:
         """
         if self._closed:
             raise RuntimeError("RerunRecorder used after close()")
+        self.frames_logged += 1
+        if not self.enabled:
+            return
         rr, rec = self._rr, self._rec
         pose = _check_array("world_T_imu", world_T_imu, (4, 4))
         if not self._blueprint_sent:
@@ -360,7 +366,6 @@ class RerunRecorder:
 
         for name, value in (stats or {}).items():
             rec.log(f"stats/{name}", rr.Scalars(float(value)))
-        self.frames_logged += 1
 
     def log_result(self, result, sequence=None) -> None:
         """Record a finished run (:class:`~vislam.core.results.RunResult`) frame by frame.
@@ -372,6 +377,8 @@ class RerunRecorder:
         covariance) and every array of ``result.frame_stats`` if the result has one.
         ``sequence`` is accepted for the callers' convenience and not needed.
         """
+        if not self.enabled:
+            return
         n = int(result.world_T_imu.shape[0])
         timestamps = np.asarray(result.timestamps_s)[:n]
         if n and not self._blueprint_sent:
@@ -427,8 +434,12 @@ class RerunRecorder:
         self._closed = True
         try:
             self._rec.flush(timeout_sec=60.0)
-        except Exception as exc:  # a viewer that went away must not cost the file
-            logger.warning("rerun: flushing the recording failed: %s", exc)
+        except Exception as exc:
+            if not self.spawned:  # only the file: it may be incomplete
+                self.abort()
+                raise OutputError(f"{self.path}: cannot write the recording: {exc}") from None
+            # a viewer that went away (closed by the user) must not cost the file
+            logger.warning("rerun: sending the recording to the viewer failed: %s", str(exc).splitlines()[0])
         self._rec.disconnect()
         if self._atomic is not None:
             atomic, self._atomic = self._atomic, None
