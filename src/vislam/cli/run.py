@@ -32,7 +32,8 @@ from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAMES
 
 __all__ = ["register", "run", "format_summary", "format_evaluation_line", "make_progress", "finish",
            "interrupted_message", "FLAG_FIELDS", "NOISE_FLAGS", "add_filter_arguments", "add_noise_injection_arguments",
-           "add_ground_truth_arguments", "options_from_args", "noise_spec_from_args", "ground_truth_from_args"]
+           "add_ground_truth_arguments", "add_rerun_arguments", "open_rerun_recorder", "options_from_args",
+           "noise_spec_from_args", "ground_truth_from_args"]
 
 _COMMAND_START = time.time()
 
@@ -77,8 +78,33 @@ def register(subparsers) -> None:
     parser.add_argument("--poses", metavar="FILE",
                         help="mapping only: known world_T_imu poses, TUM or KITTI, one per frame (default: the "
                         "localization trajectory)")
+    add_rerun_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     parser.set_defaults(func=run)
+
+
+def add_rerun_arguments(parser) -> None:
+    """``--rerun FILE.rrd`` and ``--rerun-spawn``: a 3D view of the run (vislam.tools.rerun_view)."""
+    group = parser.add_argument_group(
+        "3D viewer", "Record the run frame by frame for the Rerun viewer (needs rerun-sdk: "
+        "pip install 'vislam[viewer]'): pose, covariance, camera frustum, landmarks, map, per-frame statistics.")
+    group.add_argument("--rerun", metavar="FILE.rrd",
+                       help="write a Rerun recording (open it with `rerun FILE.rrd`); written, atomically, after "
+                       "the other outputs")
+    group.add_argument("--rerun-spawn", action="store_true",
+                       help="also stream the recording to a live Rerun viewer (skipped with a warning when no "
+                       "viewer or display is available)")
+
+
+def open_rerun_recorder(args, sequence):
+    """The :class:`~vislam.tools.rerun_view.RerunRecorder` of ``--rerun``/``--rerun-spawn``, or
+    None. Opened before the run, so a missing rerun-sdk or an unwritable path fails first."""
+    if not (getattr(args, "rerun", None) or getattr(args, "rerun_spawn", False)):
+        return None
+    from vislam.tools.rerun_view import RerunRecorder
+
+    return RerunRecorder(sequence.camera, sequence.cam_T_imu, path=args.rerun or None, spawn=args.rerun_spawn,
+                         recording_name=f"{sequence.name} ({args.mode})")
 
 
 def add_filter_arguments(parser) -> None:
@@ -319,8 +345,10 @@ def run(args) -> int:
 
     stage = OutputStage(args.out)
     progress, close = None, lambda: None
+    recorder = None
     try:
         with stage:
+            recorder = open_rerun_recorder(args, sequence)
             progress, close = make_progress(sequence.n_frames, args.mode, args.quiet)
             try:
                 result = run_estimator(sequence, args.mode, options, progress=progress, world_T_imu=poses)
@@ -331,13 +359,25 @@ def run(args) -> int:
                 name = dataset.get("label") or sequence.name
                 extra["evaluation"] = stage_evaluation(stage.staging, evaluate_run(result, gt, sequence),
                                                        f"{name} ({args.mode}) vs ground truth", ground_truth=gt_info)
+            if recorder is not None:
+                recorder.log_result(result, sequence)
             summary = write_run_outputs(stage, result, dataset=dataset, duration_s=sequence.duration_s,
                                         start_time=start_time, extra=extra)
-    except KeyboardInterrupt:
+        if recorder is not None:
+            recorder.close()  # the .rrd appears only after the other outputs
+    except BaseException as exc:
+        if recorder is not None:
+            recorder.abort()
+        if not isinstance(exc, KeyboardInterrupt):
+            raise
         close()
         print(interrupted_message("run", stage), file=sys.stderr)
         return 130
-    return finish(summary, result, stage, args.quiet)
+    try:
+        return finish(summary, result, stage, args.quiet)
+    finally:
+        if recorder is not None and recorder.path is not None and not args.quiet:
+            _print(f"rerun:         {recorder.path} (open it with: rerun {recorder.path})")
 
 
 def finish(summary: dict, result, stage, quiet: bool) -> int:
