@@ -96,6 +96,24 @@ def add_rerun_arguments(parser) -> None:
                        "viewer or display is available)")
 
 
+def record_frame(recorder, sequence):
+    """The ``on_frame`` callback that records each frame of a stepwise filter live
+    (pose, covariance, the landmarks in the state now, those frozen in this frame, the
+    frame's statistics), or None without a recorder."""
+    if recorder is None:
+        return None
+    timestamps = sequence.timestamps_s
+
+    def on_frame(f) -> None:
+        t = f.frame_index
+        stats = f.last_frame_stats.to_dict()
+        stats.pop("frame", None)
+        recorder.log_frame(t, float(timestamps[t]), f.world_T_imu, f.pose_covariance, f.live_landmark_ids,
+                           f.live_p_lm_in_world, *f.last_frozen, stats=stats)
+
+    return on_frame
+
+
 def open_rerun_recorder(args, sequence):
     """The :class:`~vislam.tools.rerun_view.RerunRecorder` of ``--rerun``/``--rerun-spawn``, or
     None. Opened before the run, so a missing rerun-sdk or an unwritable path fails first."""
@@ -351,7 +369,8 @@ def run(args) -> int:
             recorder = open_rerun_recorder(args, sequence)
             progress, close = make_progress(sequence.n_frames, args.mode, args.quiet)
             try:
-                result = run_estimator(sequence, args.mode, options, progress=progress, world_T_imu=poses)
+                result = run_estimator(sequence, args.mode, options, progress=progress, world_T_imu=poses,
+                                       on_frame=record_frame(recorder, sequence))
             finally:
                 close()
             extra["warnings"] = model_fit_warnings(result)
@@ -359,8 +378,6 @@ def run(args) -> int:
                 name = dataset.get("label") or sequence.name
                 extra["evaluation"] = stage_evaluation(stage.staging, evaluate_run(result, gt, sequence),
                                                        f"{name} ({args.mode}) vs ground truth", ground_truth=gt_info)
-            if recorder is not None:
-                recorder.log_result(result, sequence)
             summary = write_run_outputs(stage, result, dataset=dataset, duration_s=sequence.duration_s,
                                         start_time=start_time, extra=extra)
         if recorder is not None:

@@ -128,6 +128,25 @@ class _StatsDelta:
                           nis_sum / nis_count if nis_count else float("nan"), nis_count)
 
 
+class _FrozenLog:
+    """``last_frozen``: (ids, p_lm_in_world, rejected) of the landmarks frozen into the
+    map during the last update (for live views such as the Rerun recording)."""
+
+    _EMPTY = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=bool))
+
+    def _init_frozen_log(self) -> None:
+        self.last_frozen = self._EMPTY
+        self._frozen_parts: list = []
+
+    def _log_frozen(self, ids: np.ndarray, p: np.ndarray, rejected: bool) -> None:
+        self._frozen_parts.append((np.asarray(ids), np.asarray(p).reshape(-1, 3), np.full(np.size(ids), rejected)))
+
+    def _collect_frozen(self) -> None:
+        parts = self._frozen_parts
+        self.last_frozen = tuple(np.concatenate([p[i] for p in parts]) for i in range(3)) if parts else self._EMPTY
+        self._frozen_parts = []
+
+
 def _twist(linear_velocity, angular_velocity) -> np.ndarray:
     """u = (v, ω), the report's twist order."""
     return np.concatenate([np.asarray(linear_velocity, dtype=np.float64).reshape(3),
@@ -211,6 +230,10 @@ class LocalizationFilter:
             self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
         return self.update(frame.landmark_ids, frame.pixels)
 
+    live_landmark_ids = np.zeros(0, dtype=np.int64)
+    live_p_lm_in_world = np.zeros((0, 3))
+    last_frozen = _FrozenLog._EMPTY
+
     def finish(self) -> None:
         """Nothing to freeze (no landmarks)."""
         return None
@@ -219,7 +242,7 @@ class LocalizationFilter:
 # ============================================================================= mapping
 
 
-class MappingFilter:
+class MappingFilter(_FrozenLog):
     """Landmark mapping with the poses known (the report's III-B).
 
     Landmarks are independent given the poses, so each keeps its own 3x3 covariance —
@@ -253,6 +276,7 @@ class MappingFilter:
         self._split = self.options.repeated_observations == "split"
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
+        self._init_frozen_log()
 
     # --- read access ----------------------------------------------------------------
     @property
@@ -304,6 +328,7 @@ class MappingFilter:
             if world_T_imu.shape != (4, 4):
                 raise ConfigError(f"update: world_T_imu must be 4x4, got {world_T_imu.shape}")
         self._pose_given = world_T_imu
+        self._frozen_parts = []
         imu_T_world = self.imu_T_world
         self.stats.frames += 1
         self.stats.observations_total += ids_seen.size
@@ -316,6 +341,7 @@ class MappingFilter:
         self.stats.frames_processed += 1
         self.last_frame_stats = self._delta.end(t, ids_seen.size, int((~self.tracks["rejected"][
             self.tracks.live_rows]).sum()), 0.0, 0)
+        self._collect_frozen()
         return self.last_frame_stats
 
     def _freeze(self, ids: np.ndarray, status: int) -> None:
@@ -325,6 +351,7 @@ class MappingFilter:
             rows = self.tracks.rows(ids)
             self._builder.add(ids, self.tracks["mean"][rows], self.tracks["cov"][rows],
                               *self.tracks.entry(ids, rows), status)
+            self._log_frozen(ids, self.tracks["mean"][rows], status == LANDMARK_REJECTED)
             if status != LANDMARK_REJECTED:
                 self.tracks.remove(ids)
 
@@ -466,7 +493,7 @@ class _PendingLandmarks:
         w["tau2"][rows] = tau2_sum
 
 
-class SlamFilter:
+class SlamFilter(_FrozenLog):
     """The joint EKF over the IMU pose and the landmarks (the report's III-C).
 
     State: the inverse IMU pose ``imu_T_world`` (left perturbation) and the positions of
@@ -503,9 +530,7 @@ class SlamFilter:
         self._pending = _PendingLandmarks(opts, self.model, self.tracks, self._freeze_rejected_new)
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
-        #: (ids, p_lm_in_world, rejected) of the landmarks frozen into the map in the last frame.
-        self.last_frozen = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=bool))
-        self._frozen_parts: list = []
+        self._init_frozen_log()
         self.failed: str | None = None
 
     # --- read access ----------------------------------------------------------------
@@ -721,7 +746,7 @@ class SlamFilter:
         ids = state.landmark_ids[slots]
         p = state.p_lm_in_world[slots]
         self._builder.add(ids, p, state.landmark_cov(slots), *self.tracks.entry(ids), status, state.v_lm_in_world[slots])
-        self._frozen_parts.append((ids, p, np.full(ids.size, status == LANDMARK_REJECTED)))
+        self._log_frozen(ids, p, status == LANDMARK_REJECTED)
         state.remove_slots(slots)
         if status != LANDMARK_REJECTED:  # a rejected track stays (flagged) while in view
             self.tracks.remove(ids)
@@ -729,16 +754,7 @@ class SlamFilter:
     def _freeze_rejected_new(self, ids: np.ndarray, p: np.ndarray, cov: np.ndarray) -> None:
         """A landmark rejected by the static check of delayed initialization (never in the state)."""
         self._builder.add(ids, p, cov, *self.tracks.entry(ids), LANDMARK_REJECTED)
-        self._frozen_parts.append((ids, p, np.ones(ids.size, dtype=bool)))
-
-    def _collect_frozen(self) -> None:
-        parts = self._frozen_parts
-        if parts:
-            self.last_frozen = (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
-                                np.concatenate([p[2] for p in parts]))
-        else:
-            self.last_frozen = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=bool))
-        self._frozen_parts = []
+        self._log_frozen(ids, p, True)
 
     def finish(self) -> LandmarkMap:
         """Freeze the landmarks still in the state (after a failure, only those whose mean

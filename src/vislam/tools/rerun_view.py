@@ -399,6 +399,8 @@ class RerunRecorder:
         extra_stats: dict[str, np.ndarray] = {}
         for name, values in (getattr(result, "frame_stats", None) or {}).items():
             values = np.asarray(values, dtype=np.float64).reshape(-1)
+            if str(name) in ("frame", "live_landmarks"):
+                continue  # the frame is the timeline; live_landmarks is logged from the map above
             if values.shape[0] >= n:
                 extra_stats[str(name)] = values
             else:
