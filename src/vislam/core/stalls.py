@@ -66,11 +66,12 @@ __all__ = [
     "FlowRatio",
     "StallDiagnostics",
     "odometry_flow_ratios",
+    "segment_timing_residuals",
     "stall_diagnostics",
 ]
 
 #: Groups of :func:`odometry_flow_ratios`, in report order.
-FLOW_GROUPS = ("continuing", "new", "ordinary")
+FLOW_GROUPS = ("continuing", "continuing_lagged", "new", "ordinary")
 
 
 def _lags(observations: StereoObservations, repeated: np.ndarray) -> np.ndarray:
@@ -220,6 +221,7 @@ class StallDiagnostics:
         before, after: :func:`odometry_flow_ratios` of the sequence and of the remapped
             sequence, by group ("continuing", "new", "ordinary"), with the same windows.
         min_flow_px: the smallest predicted flow used.
+        timing: :func:`segment_timing_residuals` by hypothesis.
     """
 
     n_frames: int
@@ -233,6 +235,7 @@ class StallDiagnostics:
     before: dict[str, FlowRatio] = field(default_factory=dict)
     after: dict[str, FlowRatio] = field(default_factory=dict)
     min_flow_px: float = 0.0
+    timing: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def n_stall_frames(self) -> int:
@@ -253,6 +256,7 @@ class StallDiagnostics:
             "min_flow_px": self.min_flow_px,
             "flow_ratio_before": {k: v.to_dict() for k, v in self.before.items()},
             "flow_ratio_after": {k: v.to_dict() for k, v in self.after.items()},
+            "segment_timing_residuals": self.timing,
         }
 
 
@@ -262,6 +266,20 @@ def _isolated(stalls: np.ndarray, T: int) -> np.ndarray:
     is_stall[stalls] = True
     r = stalls[(stalls >= 1) & (stalls <= T - 3)]
     return r[~is_stall[r - 1] & ~is_stall[r + 1] & ~is_stall[r + 2]]
+
+
+def _track_start_frames(observations: StereoObservations) -> np.ndarray:
+    """(N,) first frame of the track (run of consecutive frames of one id) of each observation."""
+    n = observations.n_observations
+    out = np.zeros(n, dtype=np.int64)
+    if n == 0:
+        return out
+    order = np.lexsort((observations.frame_index, observations.landmark_ids))
+    ids, frames = observations.landmark_ids[order], observations.frame_index[order]
+    new_track = np.ones(n, dtype=bool)
+    new_track[1:] = (ids[1:] != ids[:-1]) | (frames[1:] != frames[:-1] + 1)
+    out[order] = frames[new_track][np.cumsum(new_track) - 1]
+    return out
 
 
 def _windows(observations: StereoObservations, stalls: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -286,6 +304,16 @@ def _windows(observations: StereoObservations, stalls: np.ndarray) -> dict[str, 
     mid, b = row(fr[a] + 1, ids[a]), row(fr[a] + 2, ids[a])
     ok = (mid >= 0) & (b >= 0)
     out["continuing"] = (a[ok], b[ok])
+    # continuing_lagged: those of them that already went through an earlier stall (the
+    # track began before the previous stall frame), i.e. are already late at r−1
+    start = _track_start_frames(observations)
+    prev_stall = np.full(T, -1, dtype=np.int64)
+    if stalls.size:
+        idx = np.searchsorted(stalls, np.arange(T), side="left") - 1  # last stall frame < t
+        prev_stall = np.where(idx >= 0, stalls[np.maximum(idx, 0)], -1)
+    a, b = out["continuing"]
+    lagged = start[a] < prev_stall[fr[a] + 1]
+    out["continuing_lagged"] = (a[lagged], b[lagged])
     # new: first seen at r (not at r−1), observed at r+2; window r -> r+2
     sel = np.isin(fr, iso)
     a = np.flatnonzero(sel)
@@ -314,6 +342,9 @@ def odometry_flow_ratios(
 
     * ``"continuing"``: tracks observed at r−1, r and r+1 for each isolated stall frame r
       (see :class:`StallDiagnostics`), window r−1 -> r+1;
+    * ``"continuing_lagged"``: those of them that began before the previous stall frame,
+      so are already late at r−1: about 0.5 before the remap if every stall adds one
+      frame of lag, about 1 after it if the remap moved them by their whole lag;
     * ``"new"``: tracks that start at r and are observed at r+1 and r+2, window r -> r+2;
     * ``"ordinary"``: tracks observed at k−1, k, k+1 with no stall frame at k or k+1,
       window k−1 -> k+1.
@@ -363,6 +394,100 @@ def odometry_flow_ratios(
     return out
 
 
+#: Timing hypotheses of :func:`segment_timing_residuals`: the pose an observation at
+#: frame k with lag L is taken from.
+TIMING_HYPOTHESES = ("in_sync", "one_frame_late", "lag")
+
+
+def _group_medians(values: np.ndarray, group: np.ndarray, n_groups: int) -> np.ndarray:
+    """(n_groups, d) per-group median of rows of ``values`` (NaN for empty groups)."""
+    out = np.full((n_groups, values.shape[1]), np.nan)
+    if group.size == 0:
+        return out
+    order = np.argsort(group, kind="stable")
+    g = group[order]
+    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    ends = np.r_[starts[1:], g.size]
+    for a, b in zip(starts, ends):
+        out[g[a]] = np.median(values[order[a:b]], axis=0)
+    return out
+
+
+def segment_timing_residuals(
+    sequence: Sequence,
+    imu_T_world: np.ndarray | None = None,
+    min_observations: int = 3,
+    min_disparity_px: float = 2.0,
+) -> dict[str, dict[str, float]]:
+    """Which frame do the observations of a stalled track belong to? No ground truth.
+
+    A *segment* is the part of a track between two stalls (constant lag L). Under a
+    timing hypothesis, each observation at frame k is triangulated with the pose of
+    frame ``k − h`` into the world; the segment's point is the median of these points
+    (over its non-repeated observations), and the observations' reprojection residuals
+    from it measure how well the segment is one static point under that hypothesis:
+
+    * ``"in_sync"``: h = 0 (the observation belongs to its own frame);
+    * ``"one_frame_late"``: h = min(L, 1);
+    * ``"lag"``: h = L (the model of :func:`remap_stalled_tracks`).
+
+    For each hypothesis: the median residual (px, 4-vector norm) of the non-repeated
+    observations with L >= 1 (``"lagged_median_px"``, ``"n_lagged"``), of the lag-0
+    observations (``"in_sync_tracks_median_px"``, the same under every hypothesis: the
+    reference), and of the repeats, held out of the fit, against the point of the
+    segment they open (``"repeat_median_px"``, ``"n_repeats"``). Segments with fewer than
+    ``min_observations`` non-repeated observations (first disparity below
+    ``min_disparity_px`` excluded) are left out. ``imu_T_world``: by default dead
+    reckoning; with noisy velocities (the dense files) the residuals grow for all
+    hypotheses alike, so compare them with each other, not with a pixel noise.
+    """
+    obs = sequence.observations
+    cam = sequence.camera
+    if imu_T_world is None:
+        imu_T_world, _ = dead_reckoning(sequence, np.zeros((6, 6)), np.zeros((6, 6)))
+    world_T_imu = se3_inverse(imu_T_world)
+    repeated = obs.repeated_mask()
+    lag = _lags(obs, repeated)
+    rows = np.flatnonzero(cam.disparity_px(obs.pixels) >= min_disparity_px)
+    start = _track_start_frames(obs)[rows]
+    # segment key: (landmark, track start, lag)
+    keys = np.stack([obs.landmark_ids[rows], start, lag[rows]], axis=1)
+    _, seg = np.unique(keys, axis=0, return_inverse=True)
+    seg = seg.ravel()
+    n_seg = int(seg.max()) + 1 if seg.size else 0
+    rep = repeated[rows]
+    fit = ~rep
+    n_fit = np.bincount(seg[fit], minlength=n_seg)
+    usable = n_fit[seg] >= min_observations
+    L = lag[rows]
+    q = cam.triangulate(obs.pixels[rows]) if rows.size else np.zeros((0, 3))
+    q_h = np.concatenate([q, np.ones((q.shape[0], 1))], axis=1)
+    frames = obs.frame_index[rows]
+    out = {}
+    for name in TIMING_HYPOTHESES:
+        h = {"in_sync": np.zeros_like(L), "one_frame_late": np.minimum(L, 1), "lag": L}[name]
+        pose_frame = frames - h
+        p_world = np.einsum("nij,nj->ni", world_T_imu[pose_frame] @ sequence.imu_T_cam, q_h)[:, :3]
+        point = _group_medians(p_world[fit], seg[fit], n_seg)
+        cam_T_world = sequence.cam_T_imu @ imu_T_world[pose_frame]
+        p_cam = np.einsum("nij,nj->ni", cam_T_world[:, :3, :3], point[seg]) + cam_T_world[:, :3, 3]
+        front = usable & (p_cam[:, 2] > 0.1)
+        resid = np.full(rows.size, np.nan)
+        if np.any(front):
+            resid[front] = np.linalg.norm(cam.project(p_cam[front]) - obs.pixels[rows[front]], axis=1)
+
+        def med(mask):
+            m = mask & np.isfinite(resid)
+            return (float(np.median(resid[m])) if np.any(m) else float("nan")), int(m.sum())
+
+        lagged, n_lagged = med(fit & (L >= 1))
+        ref, _ = med(fit & (L == 0))
+        rep_med, n_rep = med(rep)
+        out[name] = {"lagged_median_px": lagged, "n_lagged": n_lagged, "in_sync_tracks_median_px": ref,
+                     "repeat_median_px": rep_med, "n_repeats": n_rep}
+    return out
+
+
 def stall_diagnostics(sequence: Sequence, min_flow_px: float = 20.0) -> StallDiagnostics:
     """Stall counts of ``sequence`` and :func:`odometry_flow_ratios` before and after
     :func:`remap_sequence`, on the same windows and with the same dead-reckoned poses."""
@@ -389,4 +514,5 @@ def stall_diagnostics(sequence: Sequence, min_flow_px: float = 20.0) -> StallDia
         before=before,
         after=after,
         min_flow_px=float(min_flow_px),
+        timing=segment_timing_residuals(sequence, imu_T_world),
     )
