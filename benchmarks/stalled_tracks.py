@@ -12,8 +12,10 @@ For every ``sparse/{0020,0027,0042}.npz`` and ``dense/{0022,0027,0034}.npz`` und
   stall counts and the ratio of observed to odometry-predicted pixel and disparity
   motion, before and after the remap;
 * the EKF SLAM (``estimators.run(seq, "slam", options)``) on the original sequence
-  (the current default: repeats skipped, ``repeated_observations="skip"``) and on
-  :func:`vislam.core.stalls.remap_sequence` of it; dense files with
+  (the current default: repeats skipped, ``repeated_observations="skip"``), on
+  :func:`vislam.core.stalls.remap_sequence` of it, and on the original with the existing
+  ``repeated_observations="split"`` (a repeat ends the track and starts a new one, the
+  repeat included: the model the segment timing residuals support); dense files with
   ``FilterOptions(velocity_noise_mps=0.5, angular_noise_radps=0.05)``, sparse files with
   the defaults;
 * where ground truth exists (``groundtruth/0020.txt``, ``0027.txt``: left-camera poses,
@@ -24,10 +26,10 @@ For every ``sparse/{0020,0027,0042}.npz`` and ``dense/{0022,0027,0034}.npz`` und
   ``observations_gated / (observations_gated + observations_used)``.
 
 Unless ``--no-sensitivity``: the filter's pixel noise σ (``pixel_noise_px``) 1, 2, 3 px
-on dense 0027, original and remapped.
+on dense 0027, original (skip), remapped and split.
 
 Writes ``benchmarks/results/stalled_tracks.json`` (or ``--out``) and prints a table.
-About 40 s of filter time on an idle core (each dense SLAM run ~3 s).
+About a minute of filter time on an idle core (each dense SLAM run ~3 s); several on a shared one.
 """
 
 from __future__ import annotations
@@ -155,6 +157,7 @@ def main(argv=None) -> int:
             entry["dead_reckoning"] = _run(seq, "localization", options, truth)
         entry["slam_original"] = _run(seq, "slam", options, truth)
         entry["slam_remapped"] = _run(remapped, "slam", options, truth)
+        entry["slam_split"] = _run(seq, "slam", options.replace(repeated_observations="split"), truth)
         report["files"][key] = entry
         sequences[key] = (seq, remapped, truth, options)
         o, r = entry["slam_original"], entry["slam_remapped"]
@@ -170,6 +173,7 @@ def main(argv=None) -> int:
                 "pixel_noise_px": px,
                 "slam_original": _run(seq, "slam", opts, truth),
                 "slam_remapped": _run(remapped, "slam", opts, truth),
+                "slam_split": _run(seq, "slam", opts.replace(repeated_observations="split"), truth),
             }
             print(f"{key} pixel_noise_px={px:g} done", flush=True)
 
@@ -186,17 +190,18 @@ def format_table(report: dict) -> str:
     """Markdown tables of a report written by this script."""
     lines = [
         "| file | run | ATE m | KITTI t % | KITTI r deg/100m | lm init | lm rejected | gated % | "
-        "cont. px ratio | cont. disp ratio | ordinary disp ratio |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "cont. px ratio | cont. disp ratio | lagged cont. disp ratio | ordinary disp ratio |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key, e in report["files"].items():
         if "skipped" in e:
-            lines.append(f"| {key} | skipped | | | | | | | | | |")
+            lines.append(f"| {key} | skipped | | | | | | | | | | |")
             continue
         d = e["diagnostics"]
         rows = [("dead reckoning", e.get("dead_reckoning"), None),
                 ("SLAM original", e["slam_original"], d["flow_ratio_before"]),
-                ("SLAM remapped", e["slam_remapped"], d["flow_ratio_after"])]
+                ("SLAM remapped", e["slam_remapped"], d["flow_ratio_after"]),
+                ("SLAM split", e.get("slam_split"), None)]
         for label, r, flow in rows:
             if r is None:
                 continue
@@ -207,22 +212,29 @@ def format_table(report: dict) -> str:
                 _fmt(r.get("landmarks_rejected"), "d"), _fmt(None if gated is None else 100 * gated, ".1f"),
                 _fmt(flow["continuing"]["median"], ".2f") if flow else "",
                 _fmt(flow["continuing"]["disparity_median"], ".2f") if flow else "",
+                _fmt(flow["continuing_lagged"]["disparity_median"], ".2f") if flow else "",
                 _fmt(flow["ordinary"]["disparity_median"], ".2f") if flow else "",
             ]
             lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "| file | stall frames | repeats | lagged share | max lag |", "|---|---|---|---|---|"]
+    lines += ["", "| file | stall frames | repeats | lagged share | max lag | segment residual px, in sync: "
+              "lagged / repeats | same, lag model | never-stalled segments px |", "|---|---|---|---|---|---|---|---|"]
     for key, e in report["files"].items():
         if "skipped" in e:
             continue
         d = e["diagnostics"]
+        t = d["segment_timing_residuals"]
         lines.append(f"| {key} | {d['n_stall_frames']} | {d['n_repeats']} | {100 * d['lagged_share']:.1f} % | "
-                     f"{d['max_lag']} |")
+                     f"{d['max_lag']} | " + " | ".join(
+                         f"{_fmt(t[h]['lagged_median_px'], '.2f')} / {_fmt(t[h]['repeat_median_px'], '.2f')}"
+                         for h in ("in_sync", "lag")) + f" | {_fmt(t['lag']['in_sync_tracks_median_px'], '.2f')} |")
     if report.get("sensitivity"):
         lines += ["", "| sensitivity | run | ATE m | KITTI t % | KITTI r deg/100m | lm rejected | gated % |",
                   "|---|---|---|---|---|---|---|"]
         for key, s in report["sensitivity"].items():
-            for label in ("slam_original", "slam_remapped"):
-                r = s[label]
+            for label in ("slam_original", "slam_remapped", "slam_split"):
+                r = s.get(label)
+                if r is None:
+                    continue
                 lines.append(f"| {key} | {label} | {_fmt(r.get('ate_rmse_m'), '.2f')} | "
                              f"{_fmt(r.get('kitti_t_pct'), '.2f')} | {_fmt(r.get('kitti_r_deg_per_100m'), '.3f')} | "
                              f"{r['landmarks_rejected']} | {100 * r['gated_share']:.1f} |")
