@@ -3,10 +3,23 @@ ground-truth-free check of both.
 
 The KITTI feature files re-detect features every ~10 frames. At each such re-detection
 frame ``r`` every *continuing* track repeats its previous frame's pixels bit for bit
-(:meth:`~vislam.core.sequence.StereoObservations.repeated_mask`), and from then on the
-track is one frame late: its observation at frame k was taken at frame k − 1. A track
-that lives through L re-detection frames is L frames late at its end. Tracks that start
-at or after ``r`` are in sync. Skipping the repeat alone leaves the lag in place.
+(:meth:`~vislam.core.sequence.StereoObservations.repeated_mask`). Across r−1 -> r+1 such
+a track moves only half as far as the odometry says, as if it were one frame late from
+then on (its observation at frame k taken at frame k − 1; L frames late after L
+re-detection frames); tracks that start at or after ``r`` are in sync. The remap here
+implements that *lag model* (issue 12).
+
+What the data say about the model (:func:`segment_timing_residuals`, no ground truth;
+numbers in benchmarks/results/stalled_tracks.json): between two stalls, a track's
+observations are one static point with the poses of *their own* frames, not of the
+lagged ones, and the repeat itself fits the segment it opens, in sync. So at a stall
+the tracker restarts from the stale pixels and follows the point found there (a new
+point, in sync), the behaviour of the estimators' ``repeated_observations="split"``.
+That new point Q is seen from camera r where the old point P was seen from camera r−1
+(all four pixels are copied, disparity included), so for a constant camera motion it is
+seen from camera k exactly where P was seen from camera k−1: the lag model is the
+constant-velocity approximation of the restart, and it keeps the landmark (and what the
+filter knows about it) across the stall.
 
 Definitions used here:
 
@@ -44,7 +57,7 @@ Edge cases (each is handled by the rule above, nothing special-cased):
 :func:`stall_diagnostics` checks the remap without ground truth: it compares the pixel
 motion of tracks with the motion predicted by dead-reckoned odometry (see
 :class:`FlowRatio`), across stalls (continuing tracks), after them (new tracks) and on
-ordinary steps, before and after the remap.
+ordinary steps, before and after the remap, and adds the segment timing residuals.
 """
 
 from __future__ import annotations
