@@ -212,6 +212,15 @@ class SimulationOptions:
     #: Image height (px); vL, vR must lie in [0, height - 1].
     image_height_px: int = 376
 
+    # --- tracker artifacts --------------------------------------------------------------
+    #: Stalled tracks as in the KITTI feature files (0 = off). With N > 0, frames N, 2N,
+    #: 3N, ... are re-detection frames: there every continuing track repeats its previous
+    #: frame's pixels exactly, and from then on it is one frame late (see
+    #: :func:`_stall_tracks`). Tracks that start at or after a re-detection frame are in sync.
+    #: ``observation_true_pixels`` and ``observation_is_outlier`` then describe the frame
+    #: an observation's pixels come from.
+    stall_period: int = 0
+
     def __post_init__(self):
         for f in fields(self):
             value = getattr(self, f.name)
@@ -266,6 +275,8 @@ class SimulationOptions:
             )
         if self.min_track_length < 1:
             raise ConfigError(f"min_track_length must be >= 1, got {self.min_track_length}")
+        if self.stall_period < 0:
+            raise ConfigError(f"stall_period must be >= 0 (0 = off), got {self.stall_period}")
         if self.image_width_px <= KITTI_K[0, 2] + 1 or self.image_height_px <= KITTI_K[1, 2] + 1:
             raise ConfigError(
                 f"image size {self.image_width_px} x {self.image_height_px} px does not contain the principal point "
@@ -1017,6 +1028,11 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
     sigma = np.array([opts.velocity_noise_mps] * 3 + [opts.angular_noise_radps] * 3)
     measured = true_velocities + sigma * vel_noise
 
+    true_pixels = pairs.true_pixels
+    if opts.stall_period > 0:
+        pixels, true_pixels, is_outlier = _stall_tracks(pairs.frame, ids, opts.stall_period,
+                                                        (pixels, true_pixels, is_outlier))
+
     offsets = np.zeros(T + 1, dtype=np.int64)
     np.cumsum(np.bincount(pairs.frame, minlength=T), out=offsets[1:])
     sequence = Sequence(
@@ -1041,7 +1057,7 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
         landmark_kind=kind[lm_of_id],
         landmark_vehicle_id=vehicle_id,
         observation_is_outlier=is_outlier,
-        observation_true_pixels=pairs.true_pixels,
+        observation_true_pixels=true_pixels,
     )
     logger.info("simulated %s: %d frames, %d landmarks, %d observations", sequence.name, T, m, n_obs)
     return drive
@@ -1093,3 +1109,33 @@ def _gross_mismatches(true_pixels: np.ndarray, opts: SimulationOptions, rng: np.
         bad = np.linalg.norm(cand - true_pixels[todo], axis=1) < min_err
         todo = todo[bad]
     return out
+
+
+def _stall_tracks(frames: np.ndarray, ids: np.ndarray, period: int, columns: tuple) -> tuple:
+    """Stalled tracks (``SimulationOptions.stall_period``), applied to in-sync observations.
+
+    ``frames``, ``ids``: (N,) of the observations; ``columns``: per-observation arrays
+    (pixels, true pixels, outlier flags). The observed (landmark, frame) pairs stay the
+    same; only what each observation shows is delayed. With re-detection frames
+    r = period, 2·period, ..., a track (consecutive frames of one id) that began before r
+    repeats its pixels at r, and its observation at frame k shows what the in-sync track
+    showed at frame ``k − lag``, lag = number of re-detection frames in (first frame, k].
+    So the repeat at r shows frame r−1−lag(r−1), exactly the previous observation's
+    content, and the track's last ``lag`` in-sync observations are never shown. The
+    columns move together: the true pixels and outlier flag of an observation are those
+    of the frame its pixels come from. No random numbers are drawn.
+    """
+    n = frames.shape[0]
+    if n == 0:
+        return columns
+    order = np.lexsort((frames, ids))  # by id, then frame
+    f, i = frames[order], ids[order]
+    new_track = np.ones(n, dtype=bool)
+    new_track[1:] = (i[1:] != i[:-1]) | (f[1:] != f[:-1] + 1)
+    stall = (~new_track & (f % period == 0)).astype(np.int64)
+    running = np.cumsum(stall)
+    track = np.cumsum(new_track) - 1
+    lag = running - (running - stall)[new_track][track]
+    source = np.empty(n, dtype=np.int64)
+    source[order] = order[np.arange(n) - lag]  # same track, lag frames earlier
+    return tuple(c[source] for c in columns)
