@@ -8,7 +8,6 @@ import time
 import numpy as np
 import pytest
 
-from vislam.core import estimators
 from vislam.core.estimators import run
 from vislam.core.lie import se3_exp
 from vislam.core.options import FilterOptions
@@ -264,7 +263,9 @@ def test_unwritable_destination_is_an_output_error(tmp_path):
 
 def test_partial_results_are_written_and_flagged(tmp_path, drive, filter_options, monkeypatch):
     fail_at = 70
-    real_update = estimators.slam_update
+    from vislam.core import filters
+
+    real_update = filters.slam_update
     calls = {"n": 0}
 
     def failing_update(state, *args, **kwargs):
@@ -273,7 +274,7 @@ def test_partial_results_are_written_and_flagged(tmp_path, drive, filter_options
             raise EstimationError(f"simulated divergence at update {calls['n']}")
         return real_update(state, *args, **kwargs)
 
-    monkeypatch.setattr(estimators, "slam_update", failing_update)
+    monkeypatch.setattr(filters, "slam_update", failing_update)
     result = run(drive.sequence, "slam", filter_options)
     assert result.partial and "simulated divergence" in result.error
     done = result.stats.frames_processed

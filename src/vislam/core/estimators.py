@@ -95,32 +95,48 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
     frame_stats = {name: np.zeros(T) for name in FRAME_STAT_FIELDS}
     error = None
     done = 0
+
+    def collect() -> None:
+        """Store the frames the filter has finished (usually the one just stepped)."""
+        nonlocal done, has_cov
+        for t, pose, cov, fs in filt.pop_processed():
+            imu_T_world[t] = pose
+            if cov is None:
+                has_cov = False
+            else:
+                covs[t] = cov
+            for name in FRAME_STAT_FIELDS:
+                frame_stats[name][t] = getattr(fs, name)
+            done = t + 1
+
     for frame in sequence.frames():
         t = frame.index
         tic = time.perf_counter()
         try:
             if poses is None:
-                fs = filt.step(frame)
+                filt.step(frame)
             else:
-                fs = filt.step(frame, world_T_imu=poses[t])
+                filt.step(frame, world_T_imu=poses[t])
         except EstimationError as exc:
             error = str(exc)
-            logger.info("%s; stopping with a partial result", error)  # reported by the caller (result.error)
             break
-        frame_seconds[t] = time.perf_counter() - tic
-        imu_T_world[t] = filt.imu_T_world
-        cov = filt.pose_covariance
-        if cov is None:
-            has_cov = False
-        else:
-            covs[t] = cov
-        for name in FRAME_STAT_FIELDS:
-            frame_stats[name][t] = getattr(fs, name)
-        done = t + 1
+        finally:
+            frame_seconds[t] = time.perf_counter() - tic
+            collect()
         if on_frame is not None:
             on_frame(filt)
         if progress:
-            progress(done)
+            progress(t + 1)
+    if error is None and hasattr(filt, "drain"):  # frames a delayed filter still holds
+        tic = time.perf_counter()
+        try:
+            filt.drain()
+        except EstimationError as exc:
+            error = str(exc)
+        frame_seconds[sequence.n_frames - 1] += time.perf_counter() - tic
+        collect()
+    if error is not None:
+        logger.info("%s; stopping with a partial result", error)  # reported by the caller (result.error)
     landmarks = filt.finish()
     stats = filt.stats
     stats.frames = T

@@ -46,6 +46,7 @@ from vislam.core.options import FilterOptions
 from vislam.core.propagation import predict_pose, predict_state
 from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
 from vislam.core.sequence import Calibration, Frame
+from vislam.core.stalls import StallRemapBuffer
 from vislam.core.state import SlamState
 from vislam.core.updaters import (
     StereoModel,
@@ -128,6 +129,31 @@ class _StatsDelta:
                           nis_sum / nis_count if nis_count else float("nan"), nis_count)
 
 
+class _History:
+    """Frames whose estimate is final, for :meth:`pop_processed` (a batch driver takes
+    them after every step; at most :attr:`HISTORY` are kept if nobody does)."""
+
+    HISTORY = 4096
+
+    def _init_history(self) -> None:
+        from collections import deque
+
+        self._processed = deque(maxlen=self.HISTORY)
+
+    def _record(self, stats: "FrameStats") -> None:
+        cov = self.pose_covariance
+        self._processed.append((stats.frame, np.array(self.imu_T_world), None if cov is None else np.array(cov), stats))
+
+    def pop_processed(self) -> list:
+        """``[(t, imu_T_world (4, 4), pose_covariance (6, 6) or None, FrameStats), ...]`` of
+        the frames finished since the last call, in order. Usually the frame just
+        stepped; a filter that runs behind the newest frame (the stalled-track remap)
+        returns its frames when they are final."""
+        out = list(self._processed)
+        self._processed.clear()
+        return out
+
+
 class _FrozenLog:
     """``last_frozen``: (ids, p_lm_in_world, rejected) of the landmarks frozen into the
     map during the last update (for live views such as the Rerun recording)."""
@@ -177,7 +203,7 @@ def _observations(ids, pixels) -> tuple[np.ndarray, np.ndarray]:
 # ============================================================================= localization
 
 
-class LocalizationFilter:
+class LocalizationFilter(_History):
     """EKF prediction of the IMU pose only (the report's III-A)::
 
         μ ← exp(−τ û) μ,     Σ ← F Σ Fᵀ + τ² W,     F = exp(−τ ad(u))
@@ -197,6 +223,7 @@ class LocalizationFilter:
         self.stats = RunStats()
         self.frame_index = -1  # the last frame updated
         self.last_frame_stats = FrameStats(frame=-1)
+        self._init_history()
 
     @property
     def world_T_imu(self) -> np.ndarray:
@@ -222,6 +249,7 @@ class LocalizationFilter:
         self.stats.frames_processed += 1
         self.stats.observations_total += n
         self.last_frame_stats = FrameStats(frame=self.frame_index, observations=n)
+        self._record(self.last_frame_stats)
         return self.last_frame_stats
 
     def step(self, frame: Frame) -> FrameStats:
@@ -242,7 +270,7 @@ class LocalizationFilter:
 # ============================================================================= mapping
 
 
-class MappingFilter(_FrozenLog):
+class MappingFilter(_FrozenLog, _History):
     """Landmark mapping with the poses known (the report's III-B).
 
     Landmarks are independent given the poses, so each keeps its own 3x3 covariance —
@@ -277,6 +305,7 @@ class MappingFilter(_FrozenLog):
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
         self._init_frozen_log()
+        self._init_history()
 
     # --- read access ----------------------------------------------------------------
     @property
@@ -342,6 +371,7 @@ class MappingFilter(_FrozenLog):
         self.last_frame_stats = self._delta.end(t, ids_seen.size, int((~self.tracks["rejected"][
             self.tracks.live_rows]).sum()), 0.0, 0)
         self._collect_frozen()
+        self._record(self.last_frame_stats)
         return self.last_frame_stats
 
     def _freeze(self, ids: np.ndarray, status: int) -> None:
@@ -493,7 +523,7 @@ class _PendingLandmarks:
         w["tau2"][rows] = tau2_sum
 
 
-class SlamFilter(_FrozenLog):
+class SlamFilter(_FrozenLog, _History):
     """The joint EKF over the IMU pose and the landmarks (the report's III-C).
 
     State: the inverse IMU pose ``imu_T_world`` (left perturbation) and the positions of
@@ -528,25 +558,50 @@ class SlamFilter(_FrozenLog):
         self._last_correction = np.zeros(6)  # pose correction of the last update (OC transition)
         self._tau2_sum = 0.0  # Σ τ² of the predictions so far (delayed initialization)
         self._pending = _PendingLandmarks(opts, self.model, self.tracks, self._freeze_rejected_new)
-        self.frame_index = -1
+        self._t = -1  # the last frame updated
         self.last_frame_stats = FrameStats(frame=-1)
         self._init_frozen_log()
+        self._init_history()
         self.failed: str | None = None
+        #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
+        self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames) if opts.remaps_stalled_tracks else None
 
     # --- read access ----------------------------------------------------------------
     @property
+    def frame_index(self) -> int:
+        """Index of the newest frame received (−1 before the first)."""
+        return self._t + (self.stall_buffer.n_pending if self.stall_buffer is not None else 0)
+
+    @property
     def imu_T_world(self) -> np.ndarray:
-        """(4, 4) the filter's pose variable μ (the report's inverse IMU pose)."""
+        """(4, 4) the filter's pose variable μ (the report's inverse IMU pose) at its
+        last updated frame (with the stalled-track remap, ``stall_max_delay_frames``
+        behind the newest frame; :attr:`world_T_imu` is predicted up to the newest)."""
         return self.state.imu_T_world
+
+    def _predicted_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """(imu_T_world, pose covariance) predicted from the last updated frame to the
+        newest frame with the IMU samples received since (the remap runs behind)."""
+        mean, cov = self.state.imu_T_world, self.state.pose_cov
+        if self.stall_buffer is not None:
+            for frame in self.stall_buffer.pending_frames():
+                if self._t < 0 and frame is self.stall_buffer.pending_frames()[0]:
+                    continue  # the first frame has no prediction
+                mean, cov, _ = predict_pose(mean, cov, frame.dt_s, _twist(frame.linear_velocity_mps,
+                                                                          frame.angular_velocity_radps), self._W)
+        return mean, cov
 
     @property
     def world_T_imu(self) -> np.ndarray:
-        """(4, 4) current IMU pose in the world frame."""
+        """(4, 4) the IMU pose in the world frame at the newest frame."""
+        if self.stall_buffer is not None and self.stall_buffer.n_pending:
+            return se3_inverse(self._predicted_now()[0])
         return se3_inverse(self.state.imu_T_world)
 
     @property
     def pose_covariance(self) -> np.ndarray:
-        """(6, 6) covariance of the left perturbation of imu_T_world, (v, ω) order (a copy)."""
+        """(6, 6) covariance of the left perturbation of imu_T_world, (v, ω) order, at
+        the frame of :attr:`imu_T_world` (a copy)."""
         return self.state.pose_cov.copy()
 
     @property
@@ -571,8 +626,32 @@ class SlamFilter(_FrozenLog):
     # --- the frame --------------------------------------------------------------------
     def step(self, frame: Frame) -> FrameStats:
         """:meth:`predict` over ``frame.dt_s`` with the frame's IMU sample (not for the
-        first frame), then :meth:`update` with its observations."""
-        if self.frame_index >= 0:
+        first frame), then :meth:`update` with its observations.
+
+        With ``stalled_tracks: remap`` the frame first goes through the stall buffer
+        (:class:`~vislam.core.stalls.StallRemapBuffer`): the filter then updates the
+        frames that are complete, ``stall_max_delay_frames`` behind this one, and
+        :attr:`world_T_imu` predicts the pose up to this frame. Returns the statistics
+        of the last frame updated."""
+        if self.stall_buffer is None:
+            return self._step_now(frame)
+        buf = self.stall_buffer
+        repeats, dropped = buf.repeats, buf.dropped
+        ready = buf.push(frame)
+        self.stats.observations_repeated += buf.repeats - repeats
+        self.stats.observations_lag_dropped += buf.dropped - dropped
+        for f in ready:
+            self._step_now(f)
+        return self.last_frame_stats
+
+    def drain(self) -> None:
+        """The recording ended: update the frames still held by the stall buffer."""
+        if self.stall_buffer is not None:
+            for ready in self.stall_buffer.flush():
+                self._step_now(ready)
+
+    def _step_now(self, frame: Frame) -> FrameStats:
+        if self._t >= 0:
             self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
         return self.update(frame.landmark_ids, frame.pixels)
 
@@ -599,8 +678,8 @@ class SlamFilter(_FrozenLog):
         the filter stops) on a numerical failure."""
         self._require_healthy()
         ids_seen, z = _observations(ids, pixels)
-        self.frame_index += 1
-        t = self.frame_index
+        self._t += 1
+        t = self._t
         self.stats.frames += 1
         self.stats.observations_total += ids_seen.size
         self._delta.begin()
@@ -634,6 +713,7 @@ class SlamFilter(_FrozenLog):
         self.stats.frames_processed += 1
         self.last_frame_stats = self._delta.end(t, ids_seen.size, self.state.n_landmarks, nis_sum, nis_count)
         self._collect_frozen()
+        self._record(self.last_frame_stats)
         return self.last_frame_stats
 
     # --- steps 2-7 ----------------------------------------------------------------------

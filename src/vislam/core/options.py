@@ -28,12 +28,14 @@ import numpy as np
 
 from vislam.errors import ConfigError
 
-__all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET"]
+__all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "STALL_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET"]
 
 #: The three estimators of the report.
 MODES = ("localization", "mapping", "slam")
 #: Policies for observations that repeat the previous frame's pixels exactly.
 REPEATED_POLICIES = ("skip", "split", "use")
+#: Policies for stalled tracks.
+STALL_POLICIES = ("remap", "keep")
 #: EKF variants.
 EKF_VARIANTS = ("oc", "standard")
 
@@ -102,6 +104,21 @@ class FilterOptions:
     #: tracker follows the point found at the stale pixel, usually a neighbour of the
     #: original); "use" takes it as a measurement.
     repeated_observations: str = "skip"
+    #: Stalled tracks (see :mod:`vislam.core.stalls`): after each exact repeat a track's
+    #: pixels behave as if taken one frame earlier. "remap" (SLAM) drops the repeat and
+    #: gives each observation at frame k to frame k − (repeats so far in its track),
+    #: online, by running the filter ``stall_max_delay_frames`` frames behind the newest
+    #: frame (the current pose is then predicted forward with the IMU samples received
+    #: since). "keep" uses every observation at the frame it arrives (needs no delay).
+    #: The remap applies with ``repeated_observations: skip`` only ("split" and "use"
+    #: decide themselves what a repeat means).
+    #: Measured on dense 0027 (the only noisy drive with ground truth): KITTI
+    #: t-error 4.01 % -> 2.73 %, ATE 4.67 -> 4.96 m; sparse files unchanged.
+    stalled_tracks: str = "remap"
+    #: Largest lag (frames) the remap can restore; observations lagging more are dropped
+    #: (dense files: 0.3 % of observations at 10, sparse: 6 %). Also the output delay of
+    #: the remapped filter.
+    stall_max_delay_frames: int = 10
 
     # --- gating ------------------------------------------------------------------------
     #: Chi-square gate probability for the 4-D stereo innovation (0 < p < 1), or None to
@@ -150,13 +167,16 @@ class FilterOptions:
             elif f.name == "repeated_observations":
                 if value not in REPEATED_POLICIES:
                     raise ConfigError(f"repeated_observations must be one of {', '.join(REPEATED_POLICIES)}, got {value!r}")
+            elif f.name == "stalled_tracks":
+                if value not in STALL_POLICIES:
+                    raise ConfigError(f"stalled_tracks must be one of {', '.join(STALL_POLICIES)}, got {value!r}")
             elif f.name == "ekf":
                 if value not in EKF_VARIANTS:
                     raise ConfigError(f"ekf must be one of {', '.join(EKF_VARIANTS)}, got {value!r}")
             elif isinstance(f.default, bool):
                 if not isinstance(value, bool):
                     raise ConfigError(f"{f.name} must be true or false, got {value!r}")
-            elif f.name in ("max_consecutive_gated", "init_frames", "probation_frames"):
+            elif f.name in ("max_consecutive_gated", "init_frames", "probation_frames", "stall_max_delay_frames"):
                 low = 1 if f.name == "init_frames" else 0
                 if isinstance(value, bool) or not isinstance(value, int) or value < low:
                     raise ConfigError(f"{f.name} must be an integer >= {low}, got {value!r}")
@@ -171,6 +191,11 @@ class FilterOptions:
             raise ConfigError("min_depth_m must be smaller than max_depth_m")
 
     # --- derived matrices ----------------------------------------------------------------
+    @property
+    def remaps_stalled_tracks(self) -> bool:
+        """Whether SLAM runs the stalled-track remap (see :attr:`stalled_tracks`)."""
+        return self.stalled_tracks == "remap" and self.repeated_observations == "skip"
+
     @property
     def W(self) -> np.ndarray:
         """6x6 motion noise covariance of one velocity sample, (v, ω) order."""

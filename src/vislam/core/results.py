@@ -76,6 +76,8 @@ class RunStats:
     observations_gated: int = 0
     observations_repeated: int = 0
     observations_not_initialized: int = 0
+    #: Observations of stalled tracks lagging more than ``stall_max_delay_frames`` (dropped).
+    observations_lag_dropped: int = 0
     landmarks_initialized: int = 0
     landmarks_rejected: int = 0
     landmarks_moving: int = 0
@@ -106,6 +108,7 @@ class RunStats:
             "observations_gated": self.observations_gated,
             "observations_repeated": self.observations_repeated,
             "observations_not_initialized": self.observations_not_initialized,
+            "observations_lag_dropped": self.observations_lag_dropped,
             "landmarks_initialized": self.landmarks_initialized,
             "landmarks_rejected": self.landmarks_rejected,
             "landmarks_moving": self.landmarks_moving,

@@ -76,6 +76,7 @@ __all__ = [
     "stall_frames",
     "remap_stalled_tracks",
     "remap_sequence",
+    "StallRemapBuffer",
     "FlowRatio",
     "StallDiagnostics",
     "odometry_flow_ratios",
@@ -529,3 +530,106 @@ def stall_diagnostics(sequence: Sequence, min_flow_px: float = 20.0) -> StallDia
         min_flow_px=float(min_flow_px),
         timing=segment_timing_residuals(sequence, imu_T_world),
     )
+
+
+# ----------------------------------------------------------------------------- online
+
+
+class StallRemapBuffer:
+    """The remap of :func:`remap_stalled_tracks`, online: frames go in as they arrive and
+    come out, remapped, ``max_delay_frames`` frames later.
+
+    An observation at frame k with lag L (repeats so far in its track) belongs to frame
+    k − L; frame j is complete once frame j + D has arrived (D = ``max_delay_frames``),
+    so it is released then. Repeats are dropped (counted in :attr:`repeats`);
+    observations whose lag exceeds D are dropped too (counted in :attr:`dropped`; on
+    the shared files 0.2-0.3 % of the dense files' observations at D = 10, 6 % of the
+    sparse files', whose tracks live for hundreds of frames). With D at least the
+    largest lag the output equals :func:`remap_stalled_tracks` frame for frame.
+
+    Memory: one row per track in view and the D buffered frames.
+    """
+
+    def __init__(self, max_delay_frames: int):
+        from collections import deque
+
+        from vislam.core.bookkeeping import IdTable
+
+        if max_delay_frames < 0:
+            raise ValueError("max_delay_frames must be >= 0")
+        self.max_delay_frames = int(max_delay_frames)
+        self._tracks = IdTable({"lag": ((), np.int64, 0), "last": ((), np.int64, -2),
+                                "px": ((4,), np.float64, 0.0)})
+        self._pending = deque()  # [frame, id parts, pixel parts], oldest first
+        self._next = 0  # index of the next frame pushed
+        self.repeats = 0
+        self.dropped = 0
+
+    @property
+    def n_pending(self) -> int:
+        """Frames received but not released yet."""
+        return len(self._pending)
+
+    def pending_frames(self) -> list:
+        """The frames received but not released (their IMU samples, for propagation)."""
+        return [entry[1] for entry in self._pending]
+
+    def push(self, frame) -> list:
+        """Take the next frame; return the frames now complete (remapped, in order)."""
+        k = self._next
+        self._next += 1
+        ids = np.asarray(frame.landmark_ids, dtype=np.int64)
+        z = np.asarray(frame.pixels, dtype=np.float64)
+        tr = self._tracks
+        # tracks not observed now have ended (a gap starts a new track)
+        if len(tr):
+            gone = tr.ids[~np.isin(tr.ids, ids, assume_unique=True)]
+            tr.remove(gone)
+        rows = tr.rows(ids)
+        cont = rows >= 0
+        cont[cont] = tr["last"][rows[cont]] == k - 1
+        new = ~cont
+        if np.any(new):
+            tr.remove(ids[new & (rows >= 0)])
+            tr.add(ids[new])
+            rows = tr.rows(ids)
+        rep = cont & np.all(tr["px"][rows] == z, axis=1)
+        tr["lag"][rows[rep]] += 1
+        tr["last"][rows] = k
+        tr["px"][rows] = z
+        self.repeats += int(rep.sum())
+        keep = ~rep
+        lag = tr["lag"][rows[keep]]
+        ok = lag <= self.max_delay_frames
+        self.dropped += int((~ok).sum())
+        k_ids, k_z, target = ids[keep][ok], z[keep][ok], k - lag[ok]
+        self._pending.append([k, frame, [], []])
+        base = k - (len(self._pending) - 1)  # number of the oldest pending frame
+        for j in np.unique(target):
+            sel = target == j
+            entry = self._pending[int(j) - base]
+            entry[2].append(k_ids[sel])
+            entry[3].append(k_z[sel])
+        ready = []
+        while self._pending and self._pending[0][0] <= k - self.max_delay_frames:
+            ready.append(self._release())
+        return ready
+
+    def flush(self) -> list:
+        """The frames still pending (the recording ended): release them all."""
+        return [self._release() for _ in range(len(self._pending))]
+
+    def _release(self):
+        from dataclasses import replace
+
+        _, frame, id_parts, px_parts = self._pending.popleft()
+        if id_parts:
+            ids = np.concatenate(id_parts)
+            pixels = np.concatenate(px_parts)
+            order = np.argsort(ids, kind="stable")
+            ids, pixels = ids[order], pixels[order]
+            if ids.size > 1 and np.any(np.diff(ids) <= 0):  # cannot happen (see remap_stalled_tracks)
+                raise ValueError(f"stall remap: two observations of one landmark in frame {frame.index}")
+        else:
+            ids, pixels = np.zeros(0, dtype=np.int64), np.zeros((0, 4))
+        return replace(frame, landmark_ids=ids, pixels=pixels)
