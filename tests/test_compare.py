@@ -57,6 +57,8 @@ def test_compare_writes_both_runs_the_figure_and_the_json(tmp_path, small, capsy
         m = content["methods"][key]
         summary = json.loads((out / key / "summary.json").read_text())
         assert summary["mode"] == mode and m["mode"] == mode
+        # what vislam eval needs to convert KITTI (camera) ground truth for a trajectory of this folder
+        np.testing.assert_array_equal(summary["dataset"]["cam_T_imu"], drive.sequence.cam_T_imu)
         assert m["frames"] == m["frames_processed"] == 120
         assert m["landmarks_in_map"] == summary["landmarks_in_map"] > 0
         assert m["filter_seconds"] == pytest.approx(summary["filter_seconds"])

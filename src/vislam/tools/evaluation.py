@@ -31,9 +31,11 @@ one-line message.
 from __future__ import annotations
 
 import copy
+import json
 import logging
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -159,9 +161,6 @@ def cam_T_imu_from_run_summary(directory) -> tuple[np.ndarray, str] | None:
             ``dataset.cam_T_imu``, or that is not a 4x4 rigid transform (the message
             names the file and the key).
     """
-    import json
-    from pathlib import Path
-
     path = Path(directory) / RUN_SUMMARY_FILE
     if not path.is_file():
         return None
@@ -208,8 +207,6 @@ def resolve_ground_truth_frame(
         ConfigError: unknown format or frame; a camera ground truth without any
             ``cam_T_imu`` (one line saying how to give it); an invalid ``cam_T_imu``.
     """
-    from pathlib import Path
-
     _check_format_and_frame(fmt, frame)
     resolved = default_gt_frame(fmt) if frame == "auto" else frame
     if resolved == "imu":
@@ -715,8 +712,6 @@ def evaluate_files(
 def _warn_if_run_summary_disagrees(est_path, conversion: GroundTruthFrame) -> None:
     """Log a warning when the run folder of the estimate records another cam_T_imu than
     the dataset given (the estimate probably comes from another dataset)."""
-    from pathlib import Path
-
     try:
         found = cam_T_imu_from_run_summary(Path(est_path).resolve().parent)
     except ConfigError:
