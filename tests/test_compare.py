@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from vislam.cli import main
-from vislam.core.lie import se3_inverse
 from vislam.core.simulate import SimulationOptions, simulate_drive
 from vislam.tools import comparison as comparison_module
 from vislam.tools.evaluation import evaluate_files
@@ -58,6 +57,8 @@ def test_compare_writes_both_runs_the_figure_and_the_json(tmp_path, small, capsy
         m = content["methods"][key]
         summary = json.loads((out / key / "summary.json").read_text())
         assert summary["mode"] == mode and m["mode"] == mode
+        # what vislam eval needs to convert KITTI (camera) ground truth for a trajectory of this folder
+        np.testing.assert_array_equal(summary["dataset"]["cam_T_imu"], drive.sequence.cam_T_imu)
         assert m["frames"] == m["frames_processed"] == 120
         assert m["landmarks_in_map"] == summary["landmarks_in_map"] > 0
         assert m["filter_seconds"] == pytest.approx(summary["filter_seconds"])
@@ -157,6 +158,7 @@ def test_compare_bad_inputs_one_line_nonzero_nothing_written(tmp_path, small, ca
 def test_run_with_ground_truth_writes_metrics_and_prints_ate(tmp_path, long, capsys):
     data, drive = long
     out = tmp_path / "run"
+    # the simulator's groundtruth.kitti holds left-camera poses (KITTI convention): the default converts them
     assert main(["run", str(data / "sequence.npz"), "--out", str(out), *NOISE,
                  "--gt", str(data / "groundtruth.kitti")]) == 0
     printed = capsys.readouterr().out
@@ -166,23 +168,27 @@ def test_run_with_ground_truth_writes_metrics_and_prints_ate(tmp_path, long, cap
     ev = summary["evaluation"]
     for key in ("ape_rmse_m", "kitti_t_pct", "kitti_r_deg_per_100m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg"):
         assert key in ev
-    assert ev["n_frames_compared"] == 300 and ev["ground_truth"]["frame"] == "imu"
+    assert ev["n_frames_compared"] == 300 and ev["ground_truth"]["frame"] == "cam"
+    assert ev["ground_truth"]["frame_requested"] == "auto"
+    assert ev["ground_truth"]["cam_T_imu_source"] == f"dataset {data / 'sequence.npz'}"
     assert f"{ev['ape_rmse_m']:.3f} m" in printed
     assert "metrics.json" in summary["outputs"] and "error_over_distance.png" in summary["outputs"]
     assert json.loads((out / "metrics.json").read_text())["ape_rmse_m"] == pytest.approx(ev["ape_rmse_m"])
 
-    # the same truth as LEFT CAMERA poses (the shared data's convention) with --gt-frame cam
-    cam_T_imu = drive.sequence.cam_T_imu
-    world_T_cam = cam_T_imu @ drive.world_T_imu @ se3_inverse(cam_T_imu)
-    cam_gt = tmp_path / "cam.kitti"
-    write_kitti(cam_gt, world_T_cam)
-    out_cam = tmp_path / "run_cam"
-    assert main(["run", str(data / "sequence.npz"), "--out", str(out_cam), "--quiet", *NOISE,
-                 "--gt", str(cam_gt), "--gt-frame", "cam"]) == 0
-    ev_cam = json.loads((out_cam / "summary.json").read_text())["evaluation"]
-    assert ev_cam["ape_rmse_m"] == pytest.approx(ev["ape_rmse_m"], rel=1e-6)
-    # ... and read as IMU poses by mistake it gives a different (worse) answer
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["ground_truth_frame"] == "cam" and metrics["ground_truth_frame_requested"] == "auto"
+
+    # the same truth as IMU poses in a KITTI file, with --gt-frame imu: the same answer
+    imu_gt = tmp_path / "imu.kitti"
+    write_kitti(imu_gt, drive.world_T_imu)
+    out_imu = tmp_path / "run_imu"
+    assert main(["run", str(data / "sequence.npz"), "--out", str(out_imu), "--quiet", *NOISE,
+                 "--gt", str(imu_gt), "--gt-frame", "imu"]) == 0
+    ev_imu = json.loads((out_imu / "summary.json").read_text())["evaluation"]
+    assert ev_imu["ground_truth"]["frame"] == "imu" and ev_imu["ground_truth"]["cam_T_imu_source"] is None
+    assert ev_imu["ape_rmse_m"] == pytest.approx(ev["ape_rmse_m"], rel=1e-6)
+    # ... and the camera poses read as IMU poses by mistake give a different (worse) answer
     out_wrong = tmp_path / "run_wrong"
     assert main(["run", str(data / "sequence.npz"), "--out", str(out_wrong), "--quiet", *NOISE,
-                 "--gt", str(cam_gt)]) == 0
+                 "--gt", str(data / "groundtruth.kitti"), "--gt-frame", "imu"]) == 0
     assert json.loads((out_wrong / "summary.json").read_text())["evaluation"]["ape_rmse_m"] > ev["ape_rmse_m"]

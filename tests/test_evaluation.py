@@ -146,7 +146,7 @@ def test_camera_ground_truth_converts_back_to_imu(tmp_path):
     np.testing.assert_allclose(gt.world_T_body, world_T_imu, rtol=0, atol=1e-9)
     np.testing.assert_allclose(camera_to_imu_trajectory(world_T_cam, CAM_T_IMU), world_T_imu, atol=1e-9)
     # frame="imu" leaves the poses alone
-    np.testing.assert_array_equal(load_ground_truth(path).world_T_body, world_T_cam)
+    np.testing.assert_array_equal(load_ground_truth(path, frame="imu").world_T_body, world_T_cam)
 
 
 def test_camera_ground_truth_needs_a_rigid_cam_T_imu(tmp_path):
@@ -321,7 +321,7 @@ def cli_files(tmp_path):
 def test_cli_end_to_end(tmp_path, cli_files):
     gt_file, est_file, gt, est = cli_files
     out = tmp_path / "out"
-    proc = run_cli(str(est_file), str(gt_file), "--out", str(out))
+    proc = run_cli(str(est_file), str(gt_file), "--out", str(out), "--gt-frame", "imu")
     assert proc.returncode == 0, proc.stderr
     assert "APE translation, SE(3)-aligned (m)" in proc.stdout
     metrics = json.loads((out / "metrics.json").read_text())

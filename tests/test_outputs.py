@@ -60,7 +60,8 @@ def results(drive, filter_options):
 
 
 def _dataset(seq):
-    return {"name": seq.name, "path": None, "frames": seq.n_frames, "duration_s": seq.duration_s}
+    return {"name": seq.name, "path": None, "frames": seq.n_frames, "duration_s": seq.duration_s,
+            "cam_T_imu": seq.cam_T_imu.tolist()}
 
 
 def _write(stage_dir, result, seq, start_time=None):
@@ -315,6 +316,11 @@ def test_demo_outputs_include_truth_and_ate(tmp_path, drive, results):
     assert (tmp_path / "groundtruth.tum").exists() and (tmp_path / "localization.tum").exists()
     _, gt = read_tum(tmp_path / "groundtruth.tum")
     np.testing.assert_allclose(gt, drive.world_T_imu, atol=1e-6)
+    # groundtruth.kitti: left-camera poses (KITTI convention), cam_T_imu recorded in summary.json
+    cam_T_imu = np.array(json.loads((tmp_path / SUMMARY).read_text())["dataset"]["cam_T_imu"])
+    np.testing.assert_array_equal(cam_T_imu, drive.sequence.cam_T_imu)
+    world_T_cam = read_kitti(tmp_path / "groundtruth.kitti")
+    np.testing.assert_allclose(np.linalg.inv(cam_T_imu) @ world_T_cam @ cam_T_imu, drive.world_T_imu, atol=1e-6)
     ate = json.loads((tmp_path / SUMMARY).read_text())["ground_truth"]["ate_m"]
     assert ate == summary["ground_truth"]["ate_m"]
     assert ate["slam"] == pytest.approx(absolute_trajectory_error(slam.world_T_imu, drive.world_T_imu))

@@ -336,7 +336,11 @@ def test_written_ground_truth_matches(small_drive, tmp_path):
     ts, poses = read_tum(tmp_path / "groundtruth.tum")
     np.testing.assert_allclose(ts, small_drive.sequence.timestamps_s, atol=1e-6)
     np.testing.assert_allclose(poses, small_drive.world_T_imu, atol=1e-6)
-    np.testing.assert_allclose(read_kitti(tmp_path / "groundtruth.kitti"), small_drive.world_T_imu, atol=1e-6)
+    # KITTI ground truth holds left-camera poses (the format's convention, as the shared data)
+    cam_T_imu = small_drive.sequence.cam_T_imu
+    world_T_cam = read_kitti(tmp_path / "groundtruth.kitti")
+    np.testing.assert_allclose(world_T_cam[0], np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.inv(cam_T_imu) @ world_T_cam @ cam_T_imu, small_drive.world_T_imu, atol=1e-6)
     with np.load(tmp_path / "landmarks_true.npz", allow_pickle=False) as z:
         obs = small_drive.sequence.observations
         np.testing.assert_array_equal(z["ids"], np.arange(small_drive.n_landmarks))

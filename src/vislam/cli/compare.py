@@ -47,7 +47,7 @@ def register(subparsers) -> None:
         epilog="example (the report's Fig. 7 with numbers):\n"
         "  vislam compare ../shared/data/sparse/0027.npz --out cmp27 \\\n"
         "      --add-velocity-noise 0.3 --add-angular-noise 0.006 --velocity-noise 0.3 --angular-noise 0.006 \\\n"
-        "      --gt ../shared/data/groundtruth/0027.txt --gt-frame cam",
+        "      --gt ../shared/data/groundtruth/0027.txt   # KITTI ground truth: left-camera poses (the default)",
     )
     parser.add_argument("data", metavar="DATA", help="dataset file (.npz)")
     parser.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")

@@ -36,7 +36,8 @@ def register(subparsers) -> None:
         description="Simulate a KITTI-like drive with a noisy IMU (0.5 m/s, 0.05 rad/s per axis and sample), run "
         "visual-inertial SLAM and IMU-only localization on it, and write DIR/trajectory.tum, trajectory.kitti, "
         "landmarks.ply, landmarks.npz, trajectory.png, summary.json (with the ATE of both against the truth), "
-        "groundtruth.tum, groundtruth.kitti and localization.tum.",
+        "groundtruth.tum (true IMU poses), groundtruth.kitti (true left-camera poses, the KITTI convention) and "
+        "localization.tum.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     parser.add_argument("--out", metavar="DIR", default="vislam-demo", help="output directory (created if needed)")
@@ -71,7 +72,8 @@ def run(args) -> int:
             localization = run_estimator(seq, "localization", filter_options)
             dataset = {"name": seq.name, "label": f"Simulated drive (seed {args.seed})", "path": None,
                        "source": "simulator", "frames": seq.n_frames, "landmarks": seq.n_landmarks,
-                       "duration_s": seq.duration_s, "simulation": sim_options.to_dict()}
+                       "duration_s": seq.duration_s, "cam_T_imu": seq.cam_T_imu.tolist(),
+                       "simulation": sim_options.to_dict()}
             summary = write_demo_outputs(stage, slam, localization, drive.world_T_imu, dataset=dataset,
                                          duration_s=seq.duration_s, start_time=start_time)
     except KeyboardInterrupt:

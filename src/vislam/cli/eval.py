@@ -3,6 +3,12 @@
 Prints a table of APE / RPE / KITTI errors and writes ``DIR/metrics.json`` and
 ``DIR/error_over_distance.png``. The numbers come from
 :func:`vislam.tools.evaluation.evaluate_files`; this module only parses, prints and saves.
+
+The ground truth's body frame defaults to the format's convention (``--gt-frame auto``:
+KITTI files hold left-camera poses, TUM files IMU poses). Camera poses are converted
+with ``cam_T_imu`` from ``--dataset``, else from the ``summary.json`` of the run folder
+the estimate sits in; with neither the command refuses (one line) rather than compare
+camera poses with IMU poses.
 """
 
 from __future__ import annotations
@@ -11,8 +17,8 @@ import os
 import sys
 from pathlib import Path
 
-from vislam.errors import ConfigError, OutputError
-from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, GT_FORMATS, GT_FRAMES
+from vislam.errors import OutputError
+from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, GT_FORMATS, GT_FRAME_CHOICES
 
 __all__ = ["register", "run"]
 
@@ -35,12 +41,16 @@ def register(subparsers) -> None:
     parser.add_argument("--gt-format", choices=GT_FORMATS, default="kitti",
                         help="ground-truth file format: kitti (line i = frame i, matched by index) or tum "
                         "(timestamped, matched by time) (default: kitti)")
-    parser.add_argument("--gt-frame", choices=GT_FRAMES, default="imu",
-                        help="body frame of the ground-truth poses: imu, or cam for left-camera poses (converted "
-                        "with the dataset's cam_T_imu; needs --dataset) (default: imu)")
+    parser.add_argument("--gt-frame", choices=GT_FRAME_CHOICES, default="auto",
+                        help="body frame of the ground-truth poses: cam (left camera, converted to the IMU with "
+                        "cam_T_imu) or imu. auto (default): the format's convention: kitti -> cam (KITTI ground "
+                        "truth holds left-camera poses, as groundtruth/*.txt of the shared data), tum -> imu (TUM "
+                        "has no body-frame convention; vislam's TUM files hold IMU poses). cam_T_imu comes from "
+                        "--dataset, else from summary.json in the estimate's folder (a vislam run folder); with "
+                        "neither, a camera ground truth is refused")
     parser.add_argument("--dataset", metavar="DATA",
                         help="the dataset (.npz) the estimate was computed from: supplies cam_T_imu and the "
-                        "frame timestamps")
+                        "frame timestamps (default: cam_T_imu from the run folder's summary.json)")
     parser.add_argument("--max-diff", type=float, default=DEFAULT_MAX_DIFF_S, metavar="SECONDS",
                         help=f"largest time difference of matched poses, for timestamp association "
                         f"(default: {DEFAULT_MAX_DIFF_S:g})")
@@ -51,10 +61,6 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from vislam.tools.evaluation import evaluate_files, format_table, plot_error_over_distance, write_metrics_json
 
-    if args.gt_frame == "cam" and not args.dataset:
-        raise ConfigError(
-            "--gt-frame cam needs --dataset DATA: the dataset's cam_T_imu converts the camera ground truth to the IMU"
-        )
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a directory (--out expects a directory)")

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from vislam.core.options import EKF_VARIANTS, MODES, ROBUST_PRESET
 from vislam.errors import ConfigError, EstimationError
-from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAMES
+from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAME_CHOICES
 
 __all__ = ["register", "run", "format_summary", "format_evaluation_line", "make_progress", "finish",
            "interrupted_message", "FLAG_FIELDS", "NOISE_FLAGS", "add_filter_arguments", "add_noise_injection_arguments",
@@ -178,10 +178,12 @@ def add_ground_truth_arguments(parser) -> None:
     group.add_argument("--gt", metavar="FILE", help="ground-truth trajectory file")
     group.add_argument("--gt-format", choices=GT_FORMATS, default="kitti",
                        help="kitti: line i = frame i; tum: timestamped, matched by time (default: kitti)")
-    group.add_argument("--gt-frame", choices=GT_FRAMES, default="imu",
-                       help="body frame of the ground-truth poses: imu, or cam for left-camera poses (converted with "
-                       "the dataset's cam_T_imu). The shared KITTI ground truth (groundtruth/*.txt) holds "
-                       "left-camera poses: give it with --gt-frame cam (default: imu)")
+    group.add_argument("--gt-frame", choices=GT_FRAME_CHOICES, default="auto",
+                       help="body frame of the ground-truth poses: cam (left camera, converted to the IMU with the "
+                       "dataset's cam_T_imu) or imu. auto (default): the format's convention: kitti -> cam (KITTI "
+                       "ground truth holds left-camera poses, as groundtruth/*.txt of the shared data and "
+                       "groundtruth.kitti of vislam simulate), tum -> imu (TUM has no body-frame convention; "
+                       "vislam's TUM files hold IMU poses)")
 
 
 #: argparse dest of the noise-injection flags -> (NoiseSpec field, flag)
@@ -229,13 +231,24 @@ def noise_spec_from_args(args):
 
 
 def ground_truth_from_args(args, sequence):
-    """``(TrajectoryFile, info)`` of ``--gt`` checked against ``sequence``, or ``(None, None)``."""
+    """``(TrajectoryFile, info)`` of ``--gt`` checked against ``sequence``, or ``(None, None)``.
+
+    ``--gt-frame auto`` follows the format's convention (KITTI: left camera, TUM: IMU);
+    camera poses are converted with the dataset's ``cam_T_imu``. ``info`` (summary.json's
+    ``evaluation.ground_truth``) records the frame used, what was asked for and where
+    ``cam_T_imu`` came from.
+    """
     if not getattr(args, "gt", None):
         return None, None
     from vislam.tools.comparison import load_run_ground_truth
+    from vislam.tools.evaluation import resolve_ground_truth_frame
 
-    gt = load_run_ground_truth(args.gt, sequence, args.gt_format, args.gt_frame)
-    info = {"path": str(Path(args.gt).resolve()), "format": args.gt_format, "frame": args.gt_frame}
+    conversion = resolve_ground_truth_frame(args.gt_format, args.gt_frame, cam_T_imu=sequence.cam_T_imu,
+                                            cam_T_imu_source=f"dataset {sequence.source or sequence.name}",
+                                            ground_truth_path=args.gt)
+    gt = load_run_ground_truth(args.gt, sequence, args.gt_format, conversion.frame)
+    info = {"path": str(Path(args.gt).resolve()), "format": args.gt_format, "frame": conversion.frame,
+            "frame_requested": args.gt_frame, "cam_T_imu_source": conversion.cam_T_imu_source}
     return gt, info
 
 
@@ -348,7 +361,8 @@ def run(args) -> int:
     poses = load_known_poses(args.poses, sequence) if args.poses else None
     gt, gt_info = ground_truth_from_args(args, sequence)
     dataset = {"name": sequence.name, "path": str(data.resolve()), "frames": sequence.n_frames,
-               "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s}
+               "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s,
+               "cam_T_imu": sequence.cam_T_imu.tolist()}
     if args.mode == "mapping":
         dataset["poses"] = str(Path(args.poses).resolve()) if args.poses else "localization"
     extra = {}

@@ -34,7 +34,8 @@ def register(subparsers) -> None:
         "simulate",
         help="simulate a KITTI-like drive with ground truth",
         description="Simulate a stereo visual-inertial drive (KITTI-like road, camera and feature tracks) and "
-        "write DIR/sequence.npz (dataset format), DIR/groundtruth.tum and DIR/groundtruth.kitti (true IMU poses) "
+        "write DIR/sequence.npz (dataset format), DIR/groundtruth.tum (true IMU poses), DIR/groundtruth.kitti "
+        "(true left-camera poses, the KITTI convention, as the shared data's ground truth) "
         "and DIR/landmarks_true.npz (true landmarks, moving flags, outlier flags). The same options always give "
         "the same files.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,

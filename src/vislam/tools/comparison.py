@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -88,14 +88,18 @@ SUMMARY_METRICS = (
 # ----------------------------------------------------------------------------- ground truth
 
 
-def load_run_ground_truth(path, sequence: Sequence, fmt: str = "kitti", frame: str = "imu",
+def load_run_ground_truth(path, sequence: Sequence, fmt: str = "kitti", frame: str = "auto",
                           max_diff_s: float = DEFAULT_MAX_DIFF_S) -> TrajectoryFile:
     """Read the ground truth of ``sequence`` as world_T_imu and check that it matches the
     dataset's frames (at least 2 pairs), so a wrong file fails before any work.
 
+    ``frame="auto"`` follows the format's convention (KITTI: left camera, TUM: IMU);
+    camera poses are converted with ``sequence.cam_T_imu``.
+
     Raises GroundTruthError / ConfigError with a one-line message naming the file.
     """
-    gt = load_ground_truth(path, fmt, frame, sequence.cam_T_imu)
+    gt = load_ground_truth(path, fmt, frame, sequence.cam_T_imu,
+                           cam_T_imu_source=f"dataset {sequence.source or sequence.name}")
     probe = TrajectoryFile(np.broadcast_to(np.eye(4), (sequence.n_frames, 4, 4)).copy(), sequence.timestamps_s.copy(),
                            "tum", f"{sequence.source or sequence.name} (frame times)")
     associate(probe, gt, sequence.timestamps_s, max_diff_s)
@@ -130,10 +134,22 @@ def evaluation_summary(evaluation: EvaluationResult, **extra) -> dict[str, Any]:
     return out
 
 
+#: Entries of a ground-truth info dict (``ground_truth=`` of :func:`stage_evaluation`)
+#: recorded in metrics.json, under the names ``vislam eval`` uses.
+_FRAME_INFO_KEYS = {"frame": "ground_truth_frame", "frame_requested": "ground_truth_frame_requested",
+                    "cam_T_imu_source": "cam_T_imu_source"}
+
+
 def stage_evaluation(directory, evaluation: EvaluationResult, title: str, **extra) -> dict[str, Any]:
     """Write ``metrics.json`` and ``error_over_distance.png`` into ``directory`` (a staging
-    directory) and return :func:`evaluation_summary` with the file names."""
+    directory) and return :func:`evaluation_summary` with the file names. The frame of
+    the ground truth (``extra["ground_truth"]``, see
+    :func:`vislam.cli.run.ground_truth_from_args`) is recorded in metrics.json too."""
     directory = Path(directory)
+    gt_info = extra.get("ground_truth")
+    if isinstance(gt_info, Mapping):
+        frame_info = {name: gt_info[key] for key, name in _FRAME_INFO_KEYS.items() if key in gt_info}
+        evaluation = replace(evaluation, info={**evaluation.info, **frame_info})
     write_metrics_json(evaluation, directory / METRICS_FILE)
     plot_error_over_distance(evaluation, directory / ERROR_FIGURE_FILE, title=title)
     return evaluation_summary(evaluation, **extra, metrics_file=METRICS_FILE, figure=ERROR_FIGURE_FILE)
@@ -288,7 +304,8 @@ def dataset_record(sequence: Sequence, path=None, label: str | None = None) -> d
     """The ``dataset`` entry of summary.json / comparison.json."""
     return {"name": sequence.name, "label": label or sequence.name,
             "path": str(Path(path).resolve()) if path is not None else (sequence.source or None),
-            "frames": sequence.n_frames, "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s}
+            "frames": sequence.n_frames, "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s,
+            "cam_T_imu": sequence.cam_T_imu.tolist()}
 
 
 def run_comparison(sequence: Sequence, options: FilterOptions, *, noise: NoiseSpec | None = None,

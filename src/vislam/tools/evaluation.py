@@ -3,6 +3,14 @@
 * :func:`load_ground_truth` reads a KITTI or TUM ground-truth file and, for left-camera
   ground truth (``frame="cam"``, what ``groundtruth/*.txt`` of the shared data holds),
   converts it to the IMU: ``world_T_imu(i) = imu_T_cam @ world_T_cam(i) @ cam_T_imu``.
+* :func:`resolve_ground_truth_frame` decides the ground truth's body frame and where
+  ``cam_T_imu`` comes from. The default, ``"auto"``, follows the file format's
+  convention: KITTI ground truth holds left-camera poses (``"cam"``), TUM ground truth
+  IMU poses (``"imu"``; TUM has no body convention, vislam's TUM files hold the IMU).
+  ``cam_T_imu`` comes from the dataset when one is given, else from the ``summary.json``
+  of the run folder the estimate sits in (:func:`cam_T_imu_from_run_summary`); with
+  neither, a camera-frame ground truth is refused with one line (never silently read
+  as IMU poses).
 * :func:`load_estimate` reads an estimate, KITTI or TUM (detected from the number of
   values per line).
 * :func:`associate` pairs estimate and ground-truth poses: KITTI ground truth by frame
@@ -23,9 +31,11 @@ one-line message.
 from __future__ import annotations
 
 import copy
+import json
 import logging
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -34,22 +44,39 @@ from evo.core import metrics as evo_metrics
 from evo.core import sync as evo_sync
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 
-from vislam.core.lie import is_rigid_transform, se3_inverse
+from vislam.core.lie import is_rigid_transform
 from vislam.core.metrics import KittiOdometryErrors, kitti_odometry_errors, trajectory_distances
 from vislam.errors import ConfigError, GroundTruthError, OutputError
 from vislam.tools.atomic import atomic_path, write_text_atomic
 from vislam.tools.jsonio import dumps
-from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, GT_FORMATS, GT_FRAMES, TrajectoryFile, read_trajectory
+from vislam.tools.trajectory_io import (
+    DEFAULT_MAX_DIFF_S,
+    GT_FORMATS,
+    GT_FRAME_CHOICES,
+    GT_FRAMES,
+    TrajectoryFile,
+    camera_to_imu_trajectory,
+    default_gt_frame,
+    imu_to_camera_trajectory,
+    read_trajectory,
+)
 
 __all__ = [
     "GT_FORMATS",
     "GT_FRAMES",
+    "GT_FRAME_CHOICES",
     "DEFAULT_MAX_DIFF_S",
+    "RUN_SUMMARY_FILE",
     "RPE_DISTANCE_M",
     "ErrorStats",
     "Association",
     "EvaluationResult",
     "camera_to_imu_trajectory",
+    "imu_to_camera_trajectory",
+    "GroundTruthFrame",
+    "default_gt_frame",
+    "cam_T_imu_from_run_summary",
+    "resolve_ground_truth_frame",
     "load_ground_truth",
     "load_estimate",
     "associate",
@@ -64,22 +91,149 @@ logger = logging.getLogger(__name__)
 
 #: Ground-truth path length (m) between the poses of the distance-based RPE.
 RPE_DISTANCE_M = 100.0
+#: The file of a run folder (``vislam run``, ``vislam demo``) that records the dataset's
+#: ``cam_T_imu`` under ``dataset.cam_T_imu``.
+RUN_SUMMARY_FILE = "summary.json"
 
 
 # ----------------------------------------------------------------------------- loading
 
 
-def camera_to_imu_trajectory(world_T_cam, cam_T_imu) -> np.ndarray:
-    """Left-camera poses -> IMU poses: ``imu_T_cam @ world_T_cam(i) @ cam_T_imu``.
+@dataclass(frozen=True, eq=False)
+class GroundTruthFrame:
+    """The body frame of a ground truth and how it is brought to the IMU.
 
-    The camera trajectory's world frame is the first camera frame; the result's world
-    frame is the first IMU frame (``world_T_imu(0) = I`` when ``world_T_cam(0) = I``).
+    Attributes:
+        frame: ``"imu"`` or ``"cam"`` (left-camera poses, converted with ``cam_T_imu``).
+        requested: what was asked for: ``"auto"`` (the format's convention), ``"imu"`` or
+            ``"cam"``.
+        fmt: the ground truth's file format, ``"kitti"`` or ``"tum"``.
+        cam_T_imu: (4, 4) for ``frame="cam"``, else None.
+        cam_T_imu_source: where ``cam_T_imu`` came from (``"dataset PATH"`` or
+            ``"PATH/summary.json (dataset.cam_T_imu)"``), else None.
     """
-    cam_T_imu = np.asarray(cam_T_imu, dtype=np.float64)
-    return se3_inverse(cam_T_imu) @ np.asarray(world_T_cam, dtype=np.float64) @ cam_T_imu
+
+    frame: str
+    requested: str
+    fmt: str
+    cam_T_imu: np.ndarray | None = None
+    cam_T_imu_source: str | None = None
+
+    def describe(self) -> str:
+        """One line for tables: which frame, why, and where cam_T_imu came from."""
+        why = f"default for {self.fmt.upper()} ground truth" if self.requested == "auto" else "as requested"
+        if self.frame == "imu":
+            return f"IMU poses ({why})"
+        return f"left-camera poses ({why}), converted to the IMU with cam_T_imu from {self.cam_T_imu_source}"
+
+    def to_info(self) -> dict[str, Any]:
+        """The entries recorded in metrics.json."""
+        return {
+            "ground_truth_frame": self.frame,
+            "ground_truth_frame_requested": self.requested,
+            "cam_T_imu_source": self.cam_T_imu_source,
+            "cam_T_imu": self.cam_T_imu.tolist() if self.cam_T_imu is not None else None,
+        }
+
+    def apply(self, traj: TrajectoryFile) -> TrajectoryFile:
+        """``traj`` (poses of this frame) as world_T_imu."""
+        if self.frame == "imu":
+            return traj
+        poses = camera_to_imu_trajectory(traj.world_T_body, self.cam_T_imu)
+        logger.info("%s: converted %d left-camera poses to the IMU frame (cam_T_imu from %s)",
+                    traj.path, len(traj), self.cam_T_imu_source)
+        return TrajectoryFile(poses, traj.timestamps_s, traj.fmt, traj.path)
 
 
-def load_ground_truth(path, fmt: str = "kitti", frame: str = "imu", cam_T_imu=None) -> TrajectoryFile:
+def _check_format_and_frame(fmt: str, frame: str) -> None:
+    if fmt not in GT_FORMATS:
+        raise ConfigError(f"unknown ground-truth format {fmt!r}; expected one of {', '.join(GT_FORMATS)}")
+    if frame not in GT_FRAME_CHOICES:
+        raise ConfigError(f"unknown ground-truth frame {frame!r}; expected one of {', '.join(GT_FRAME_CHOICES)}")
+
+
+def cam_T_imu_from_run_summary(directory) -> tuple[np.ndarray, str] | None:
+    """``(cam_T_imu, source)`` recorded in ``directory/summary.json`` (a ``vislam run`` or
+    ``vislam demo`` folder) under ``dataset.cam_T_imu``; None when there is no such file.
+
+    Raises:
+        ConfigError: the file exists but is not readable JSON, lacks
+            ``dataset.cam_T_imu``, or that is not a 4x4 rigid transform (the message
+            names the file and the key).
+    """
+    path = Path(directory) / RUN_SUMMARY_FILE
+    if not path.is_file():
+        return None
+    try:
+        content = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not valid JSON"
+        raise ConfigError(f"{path}: cannot be read ({reason}); a vislam run summary was expected") from None
+    dataset = content.get("dataset") if isinstance(content, dict) else None
+    raw = dataset.get("cam_T_imu") if isinstance(dataset, dict) else None
+    if raw is None:
+        recorded = dataset.get("path") if isinstance(dataset, dict) else None
+        hint = f"--dataset {recorded}" if recorded else "--dataset DATA"
+        raise ConfigError(
+            f"{path}: no key dataset.cam_T_imu (written by an older vislam?); pass {hint} to convert the "
+            "camera ground truth, or --gt-frame imu if it holds IMU poses"
+        )
+    try:
+        cam_T_imu = np.array(raw, dtype=np.float64)
+    except (TypeError, ValueError):
+        cam_T_imu = None
+    if cam_T_imu is None or not is_rigid_transform(cam_T_imu):
+        raise ConfigError(f"{path}: dataset.cam_T_imu is not a 4x4 rigid transform (a list of 4 rows of 4 numbers)")
+    return cam_T_imu, f"{path} (dataset.cam_T_imu)"
+
+
+def resolve_ground_truth_frame(
+    fmt: str,
+    frame: str = "auto",
+    *,
+    cam_T_imu=None,
+    cam_T_imu_source: str | None = None,
+    estimate_path=None,
+    ground_truth_path=None,
+) -> GroundTruthFrame:
+    """Decide the body frame of a ground truth and, for the camera, find ``cam_T_imu``.
+
+    ``frame="auto"`` takes the format's convention (:func:`default_gt_frame`: KITTI ->
+    ``"cam"``, TUM -> ``"imu"``). For ``"cam"``, ``cam_T_imu`` is the one given (the
+    dataset's), else the one recorded in the ``summary.json`` next to ``estimate_path``
+    (:func:`cam_T_imu_from_run_summary`).
+
+    Raises:
+        ConfigError: unknown format or frame; a camera ground truth without any
+            ``cam_T_imu`` (one line saying how to give it); an invalid ``cam_T_imu``.
+    """
+    _check_format_and_frame(fmt, frame)
+    resolved = default_gt_frame(fmt) if frame == "auto" else frame
+    if resolved == "imu":
+        return GroundTruthFrame("imu", frame, fmt)
+    if cam_T_imu is not None:
+        if not is_rigid_transform(cam_T_imu):
+            raise ConfigError(f"cam_T_imu{f' of {cam_T_imu_source}' if cam_T_imu_source else ''} is not a 4x4 rigid "
+                              "transform")
+        return GroundTruthFrame("cam", frame, fmt, np.array(cam_T_imu, dtype=np.float64),
+                                cam_T_imu_source or "the caller")
+    what = f"{ground_truth_path}: " if ground_truth_path is not None else ""
+    why = ("KITTI ground truth holds left-camera poses by the format's convention" if frame == "auto"
+           else "camera-frame ground truth")
+    if estimate_path is None:
+        raise ConfigError(f"{what}{why}; converting it to the IMU needs the dataset's cam_T_imu")
+    directory = Path(estimate_path).resolve().parent
+    found = cam_T_imu_from_run_summary(directory)
+    if found is None:
+        raise ConfigError(
+            f"{what}{why} and needs cam_T_imu, but no dataset was given and {directory / RUN_SUMMARY_FILE} does not "
+            "exist; pass --dataset DATA (the estimate's dataset), or --gt-frame imu if the file holds IMU poses"
+        )
+    return GroundTruthFrame("cam", frame, fmt, found[0], found[1])
+
+
+def load_ground_truth(path, fmt: str = "kitti", frame: str = "auto", cam_T_imu=None,
+                      cam_T_imu_source: str | None = None) -> TrajectoryFile:
     """Read a ground-truth trajectory and return it as ``world_T_imu``.
 
     Args:
@@ -87,31 +241,21 @@ def load_ground_truth(path, fmt: str = "kitti", frame: str = "imu", cam_T_imu=No
         fmt: ``"kitti"`` (12 values per line, matched to the estimate by frame index) or
             ``"tum"`` (timestamped, matched by time).
         frame: ``"imu"`` when the file holds ``world_T_imu``; ``"cam"`` when it holds the
-            left camera ``world_T_cam`` (converted with ``cam_T_imu``).
-        cam_T_imu: (4, 4) the dataset's transform, required for ``frame="cam"``.
+            left camera ``world_T_cam`` (converted with ``cam_T_imu``); ``"auto"`` (the
+            default): the format's convention, ``"cam"`` for KITTI, ``"imu"`` for TUM.
+        cam_T_imu: (4, 4) the dataset's transform, required for the camera frame.
+        cam_T_imu_source: where ``cam_T_imu`` comes from, for messages.
 
     Raises:
         GroundTruthError: missing, unreadable or malformed file (message names it).
-        ConfigError: unknown ``fmt``/``frame``, or ``frame="cam"`` without a valid
+        ConfigError: unknown ``fmt``/``frame``, or a camera frame without a valid
             ``cam_T_imu``.
     """
-    if fmt not in GT_FORMATS:
-        raise ConfigError(f"unknown ground-truth format {fmt!r}; expected one of {', '.join(GT_FORMATS)}")
-    if frame not in GT_FRAMES:
-        raise ConfigError(f"unknown ground-truth frame {frame!r}; expected one of {', '.join(GT_FRAMES)}")
-    if frame == "cam":
-        if cam_T_imu is None:
-            raise ConfigError(
-                f"{path}: camera-frame ground truth needs the dataset's cam_T_imu to be converted to the IMU"
-            )
-        if not is_rigid_transform(cam_T_imu):
-            raise ConfigError("cam_T_imu is not a 4x4 rigid transform")
+    _check_format_and_frame(fmt, frame)
     traj = read_trajectory(path, fmt)
-    poses = traj.world_T_body
-    if frame == "cam":
-        poses = camera_to_imu_trajectory(poses, cam_T_imu)
-        logger.info("%s: converted %d left-camera poses to the IMU frame", path, len(traj))
-    return TrajectoryFile(poses, traj.timestamps_s, traj.fmt, traj.path)
+    conversion = resolve_ground_truth_frame(fmt, frame, cam_T_imu=cam_T_imu, cam_T_imu_source=cam_T_imu_source,
+                                            ground_truth_path=path)
+    return conversion.apply(traj)
 
 
 def load_estimate(path) -> TrajectoryFile:
@@ -523,31 +667,58 @@ def evaluate_files(
     est_path,
     gt_path,
     gt_format: str = "kitti",
-    gt_frame: str = "imu",
+    gt_frame: str = "auto",
     sequence=None,
     max_diff_s: float = DEFAULT_MAX_DIFF_S,
 ) -> EvaluationResult:
     """Load, associate and evaluate: the whole of ``vislam eval``.
 
-    ``sequence`` (a :class:`~vislam.core.sequence.Sequence`, optional) supplies
-    ``cam_T_imu`` for ``gt_frame="cam"`` and the frame times of KITTI files.
+    ``sequence`` (a :class:`~vislam.core.sequence.Sequence`, optional) supplies the frame
+    times of KITTI files and ``cam_T_imu`` for a camera-frame ground truth; without it,
+    ``cam_T_imu`` comes from the ``summary.json`` of the estimate's run folder (see
+    :func:`resolve_ground_truth_frame`). ``gt_frame="auto"`` follows the format's
+    convention (KITTI: left camera; TUM: IMU). The frame used and the source of
+    ``cam_T_imu`` are recorded in the result's ``info``.
     """
-    if gt_frame == "cam" and sequence is None:
-        raise ConfigError("camera-frame ground truth needs the dataset (for cam_T_imu)")
-    cam_T_imu = sequence.cam_T_imu if sequence is not None else None
-    gt = load_ground_truth(gt_path, gt_format, gt_frame, cam_T_imu)
+    _check_format_and_frame(gt_format, gt_frame)
+    raw_gt = read_trajectory(gt_path, gt_format)
     est = load_estimate(est_path)
+    source = f"dataset {getattr(sequence, 'source', None) or getattr(sequence, 'name', '')}".strip() \
+        if sequence is not None else None
+    conversion = resolve_ground_truth_frame(
+        gt_format, gt_frame,
+        cam_T_imu=sequence.cam_T_imu if sequence is not None else None,
+        cam_T_imu_source=source,
+        estimate_path=est_path,
+        ground_truth_path=gt_path,
+    )
+    if sequence is not None and conversion.frame == "cam":
+        _warn_if_run_summary_disagrees(est_path, conversion)
+    gt = conversion.apply(raw_gt)
     assoc = associate(est, gt, sequence.timestamps_s if sequence is not None else None, max_diff_s)
     info = {
         "estimate": str(est_path),
         "estimate_format": est.fmt,
         "ground_truth": str(gt_path),
         "ground_truth_format": gt.fmt,
-        "ground_truth_frame": gt_frame,
+        **conversion.to_info(),
+        "ground_truth_description": conversion.describe(),
         "dataset": getattr(sequence, "source", None) if sequence is not None else None,
         "association": assoc.to_dict(),
     }
     return evaluate(assoc.est_world_T_imu, assoc.gt_world_T_imu, assoc.timestamps_s, info=info)
+
+
+def _warn_if_run_summary_disagrees(est_path, conversion: GroundTruthFrame) -> None:
+    """Log a warning when the run folder of the estimate records another cam_T_imu than
+    the dataset given (the estimate probably comes from another dataset)."""
+    try:
+        found = cam_T_imu_from_run_summary(Path(est_path).resolve().parent)
+    except ConfigError:
+        return
+    if found is not None and not np.allclose(found[0], conversion.cam_T_imu, atol=1e-9):
+        logger.warning("%s records another cam_T_imu than %s; using the dataset's", found[1],
+                       conversion.cam_T_imu_source)
 
 
 # ----------------------------------------------------------------------------- output
@@ -577,6 +748,9 @@ def format_table(result: EvaluationResult) -> str:
         header += (f" (matched {how}; estimate {assoc['n_estimate']} poses, "
                    f"ground truth {assoc['n_ground_truth']})")
     lines.append(header)
+    description = r.info.get("ground_truth_description") if r.info else None
+    if description:
+        lines.append(f"ground truth: {description}")
     lines.append(f"ground-truth path length: {r.path_length_m:.2f} m")
     lines.append("")
     w = 38

@@ -17,8 +17,14 @@ Files (all in the output directory ``DIR``):
   ``first_frame``, ``last_frame``, ``status``, ``v_lm_in_world`` (K, 3);
 * ``trajectory.png`` — the report's xy-plane figure (:mod:`vislam.tools.plotting`);
 * ``summary.json`` — what ran and how it went, see :func:`build_summary`;
-* demo only: ``groundtruth.tum`` / ``groundtruth.kitti`` (the true IMU poses) and
-  ``localization.tum`` (the dead-reckoning trajectory, for comparison).
+* demo only: ``groundtruth.tum`` (the true IMU poses), ``groundtruth.kitti`` (the true
+  left-camera poses, by the KITTI convention, as the shared data's ``groundtruth/*.txt``)
+  and ``localization.tum`` (the dead-reckoning trajectory, for comparison).
+
+``summary.json`` records the dataset's ``cam_T_imu`` (4x4 list) under
+``dataset.cam_T_imu`` when the caller gives it in ``dataset`` (``vislam run``,
+``compare``, ``demo`` and ``report`` do): ``vislam eval`` takes it from there to convert
+camera ground truth when no dataset is given.
 
 Atomicity: an :class:`OutputStage` writes every file into a hidden staging directory
 inside ``DIR`` and, once all are complete, renames them onto their final names
@@ -48,7 +54,7 @@ from vislam.errors import OutputError
 from vislam.tools.jsonio import json_safe, write_json  # noqa: F401 (re-exported)
 from vislam.tools.atomic import write_bytes_atomic
 from vislam.tools.npz import write_npz
-from vislam.tools.trajectory_io import write_kitti, write_tum
+from vislam.tools.trajectory_io import imu_to_camera_trajectory, write_kitti, write_tum
 
 __all__ = [
     "TRAJECTORY_TUM",
@@ -430,7 +436,12 @@ def write_demo_outputs(stage: OutputStage, slam: RunResult, localization: RunRes
                        extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Write the outputs of ``vislam demo`` into ``stage`` and commit them: those of a
     SLAM run, plus the ground truth, the localization trajectory, and in summary.json
-    the ATE of SLAM and of localization against the truth. Returns the summary."""
+    the ATE of SLAM and of localization against the truth. Returns the summary.
+
+    ``dataset["cam_T_imu"]`` (4x4) is required: ``groundtruth.kitti`` holds camera poses.
+    """
+    if dataset.get("cam_T_imu") is None:
+        raise ValueError("dataset must give cam_T_imu (groundtruth.kitti holds left-camera poses)")
     from vislam.tools.plotting import TrajectoryCurve
 
     ate_slam = absolute_trajectory_error(slam.world_T_imu, true_world_T_imu)
@@ -451,7 +462,7 @@ def write_demo_outputs(stage: OutputStage, slam: RunResult, localization: RunRes
                          [f"vislam demo landmarks of {name} (slam)"])
     timestamps = localization.timestamps_s  # every frame (SLAM's may stop early)
     write_tum(stage.path(GROUNDTRUTH_TUM), timestamps, true_world_T_imu)
-    write_kitti(stage.path(GROUNDTRUTH_KITTI), true_world_T_imu)
+    write_kitti(stage.path(GROUNDTRUTH_KITTI), imu_to_camera_trajectory(true_world_T_imu, dataset["cam_T_imu"]))
     write_tum(stage.path(LOCALIZATION_TUM), timestamps, localization.world_T_imu)
     ground_truth = {
         "ate_m": {"slam": ate_slam, "localization": ate_loc},

@@ -766,7 +766,8 @@ def _moving_landmarks(root: Path, settings: ReportSettings, start_time: float, s
         truth_info = {"path": None, "format": "simulator", "frame": "imu"}
         dataset = {"name": f"simulated-{scene}", "label": f"Simulated drive, {scene_label}", "path": None,
                    "source": "simulator", "frames": seq.n_frames, "landmarks": seq.n_landmarks,
-                   "duration_s": seq.duration_s, "simulation": sim_options.to_dict()}
+                   "duration_s": seq.duration_s, "cam_T_imu": seq.cam_T_imu.tolist(),
+                   "simulation": sim_options.to_dict()}
         stats = drive.statistics()
         runs = [("localization", "IMU localization", "localization", base)] + [
             (key, label, "slam", base.replace(**changes)) for key, label, changes, _ in MOVING_VARIANTS]

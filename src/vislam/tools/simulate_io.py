@@ -4,9 +4,13 @@
 
 * ``sequence.npz`` — the recording in the datasets' npz format (:func:`save_sequence`),
   loadable like the real data;
-* ``groundtruth.tum`` and ``groundtruth.kitti`` — the true ``world_T_imu`` of every frame
-  (TUM: timestamp tx ty tz qx qy qz qw; KITTI: 12 row-major values of the top 3x4);
-  note the real datasets' ground truth files hold the left *camera* poses instead;
+* ``groundtruth.tum`` — the true ``world_T_imu`` of every frame (timestamp tx ty tz qx
+  qy qz qw);
+* ``groundtruth.kitti`` — the true poses of the left *camera*, by the KITTI convention
+  (as the real datasets' ``groundtruth/*.txt``): ``world_T_cam(i) = cam_T_imu @
+  world_T_imu(i) @ imu_T_cam`` (world = first camera frame), 12 row-major values of the
+  top 3x4 per frame. ``vislam eval`` and ``vislam run --gt`` read KITTI ground truth as
+  camera poses by default and convert them back with the dataset's ``cam_T_imu``;
 * ``landmarks_true.npz`` — the true landmarks and the outlier flags, keys:
 
   ==========================  =========  =================================================
@@ -43,7 +47,7 @@ from vislam.core.simulate import LANDMARK_KINDS, SimulatedDrive
 from vislam.errors import OutputError
 from vislam.tools.dataset_io import save_sequence
 from vislam.tools.npz import write_npz
-from vislam.tools.trajectory_io import write_kitti, write_tum
+from vislam.tools.trajectory_io import imu_to_camera_trajectory, write_kitti, write_tum
 
 __all__ = ["write_simulated_drive", "landmark_truth_arrays", "SIMULATION_FILES", "DEFAULT_MAX_DENSE_BYTES"]
 
@@ -94,6 +98,6 @@ def write_simulated_drive(drive: SimulatedDrive, out_dir, max_dense_bytes: int =
     paths = [out_dir / name for name in SIMULATION_FILES]
     save_sequence(seq, paths[0])
     write_tum(paths[1], seq.timestamps_s, drive.world_T_imu)
-    write_kitti(paths[2], drive.world_T_imu)
+    write_kitti(paths[2], imu_to_camera_trajectory(drive.world_T_imu, seq.cam_T_imu))
     write_npz(paths[3], landmark_truth_arrays(drive))
     return paths

@@ -28,6 +28,44 @@ from vislam.errors import GroundTruthError
 #: Ground-truth formats and frames understood by the evaluation (vislam.tools.evaluation).
 GT_FORMATS = ("kitti", "tum")
 GT_FRAMES = ("imu", "cam")
+#: Accepted values of a ground-truth frame option: a frame, or "auto" for the format's
+#: convention (see :func:`default_gt_frame`).
+GT_FRAME_CHOICES = ("auto",) + GT_FRAMES
+
+
+def default_gt_frame(fmt: str) -> str:
+    """Body frame of ground-truth poses in format ``fmt`` when nothing else is said.
+
+    KITTI odometry ground truth holds left-camera poses by that format's convention
+    (``groundtruth/*.txt`` of the shared data, and vislam's own simulated
+    ``groundtruth.kitti``): ``"cam"``. TUM has no body-frame convention; vislam's TUM
+    files hold IMU poses: ``"imu"``.
+    """
+    if fmt not in GT_FORMATS:
+        raise ValueError(f"unknown ground-truth format {fmt!r}; expected one of {', '.join(GT_FORMATS)}")
+    return "cam" if fmt == "kitti" else "imu"
+
+
+def camera_to_imu_trajectory(world_T_cam, cam_T_imu) -> np.ndarray:
+    """Left-camera poses -> IMU poses: ``imu_T_cam @ world_T_cam(i) @ cam_T_imu``.
+
+    The camera trajectory's world frame is the first camera frame; the result's world
+    frame is the first IMU frame (``world_T_imu(0) = I`` when ``world_T_cam(0) = I``).
+    """
+    from vislam.core.lie import se3_inverse
+
+    cam_T_imu = np.asarray(cam_T_imu, dtype=np.float64)
+    return se3_inverse(cam_T_imu) @ np.asarray(world_T_cam, dtype=np.float64) @ cam_T_imu
+
+
+def imu_to_camera_trajectory(world_T_imu, cam_T_imu) -> np.ndarray:
+    """IMU poses -> left-camera poses, the inverse of :func:`camera_to_imu_trajectory`:
+    ``cam_T_imu @ world_T_imu(i) @ imu_T_cam`` (world frame: the first camera frame when
+    ``world_T_imu(0) = I``, as KITTI ground truth)."""
+    from vislam.core.lie import se3_inverse
+
+    cam_T_imu = np.asarray(cam_T_imu, dtype=np.float64)
+    return cam_T_imu @ np.asarray(world_T_imu, dtype=np.float64) @ se3_inverse(cam_T_imu)
 #: Largest time difference (s) of an associated estimate / ground-truth pair. Well below
 #: half the frame interval of KITTI (0.1 s), so that no pose can match two others.
 DEFAULT_MAX_DIFF_S = 0.02
@@ -41,6 +79,13 @@ def _rotation():
 from vislam.tools.atomic import write_text_atomic
 
 __all__ = [
+    "GT_FORMATS",
+    "GT_FRAMES",
+    "GT_FRAME_CHOICES",
+    "DEFAULT_MAX_DIFF_S",
+    "default_gt_frame",
+    "camera_to_imu_trajectory",
+    "imu_to_camera_trajectory",
     "TrajectoryFile",
     "format_tum",
     "format_kitti",
