@@ -120,12 +120,15 @@ def test_extrinsic_rotation_error_and_gyro_bias_are_estimated_together():
     np.testing.assert_allclose(result.suggested["gyro_bias_radps"], bias, atol=0.003)
 
 
-def test_time_offset_is_estimated():
-    _, result = _check(time_offset_s=0.05)
-    assert _severity(result, "time-offset") == "WARN"
-    assert result.estimates["time_offset_s"] == pytest.approx(0.05, abs=0.015)
-    assert result.suggested["time_offset_s"] == pytest.approx(0.05, abs=0.015)
-    assert _severity(result, "velocity-association") == "OK"
+@pytest.mark.parametrize("offset_s", [0.04, 0.08])
+def test_time_offset_is_estimated(offset_s):
+    _, result = _check(time_offset_s=offset_s)
+    assert result.estimates["time_offset_effective_s"] == pytest.approx(offset_s, abs=0.015)
+    if offset_s > 0.05:  # closer to a whole frame: the "current" association, and what is left
+        assert result.suggested["velocity_association"] == "current"
+        assert _severity(result, "velocity-association") == "WARN"
+    else:
+        assert _severity(result, "velocity-association") == "OK"
 
 
 def test_pixel_noise_and_outliers_are_estimated():
