@@ -596,6 +596,7 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
         fit_median = float(np.median(_left_distance(pairs.residuals(pairs.relative_imu(ts, ub, shift), Cfit))))
         est["reprojection_best_fit_median_px"] = fit_median
         reliable = fit_median <= opts.max_fit_median_px
+        est["conventions_checked"] = reliable
         est["imu_camera_rotation_error_deg"] = angle
         est["imu_camera_rotation_error_deg_se"] = angle_se
         est["imu_camera_rotation_correction_deg"] = np.degrees(phi).tolist()
@@ -622,6 +623,11 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
         if not reliable:
             notes.append(f"the tracks reproject with a median {fit_median:.1f} px even under the best rotation and "
                          f"association: rotation, association and time offset not reported")
+            est["conventions_checked"] = False
+            for key in ("imu_camera_rotation_error_deg", "imu_camera_rotation_error_deg_se",
+                        "imu_camera_rotation_correction_deg", "imu_camera_rotation_correction_deg_se",
+                        "time_offset_s", "time_offset_s_se", "time_offset_effective_s"):
+                est[key] = None
             est["gyro_bias_visual_radps"] = [None] * 3
             est["gyro_bias_visual_radps_se"] = [None] * 3
         elif angle > opts.rotation_error_deg:
@@ -687,6 +693,7 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
             findings.append(Finding(code, "WARN", f"not enough in-sync stereo tracks ({pairs.n_pairs} predictions) "
                                                   f"to check this; the recording's conventions are assumed"))
         est["imu_camera_rotation_error_deg"] = None
+        est["conventions_checked"] = False
 
     # --- pixels ---------------------------------------------------------------------------
     pix = estimate_pixel_noise(sequence)
@@ -725,15 +732,16 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
 
     o = est["observations"]
     rep_share = o["repeated_share"]
-    findings.append(Finding("repeated-observations", "WARN" if rep_share > 0.01 else "OK",
+    findings.append(Finding("repeated-observations", "OK",
                             f"{o['repeated']} observations ({100 * rep_share:.1f} %) repeat the previous frame's "
                             f"pixels exactly (tracker artifact; the tracks are one frame late afterwards): "
-                            + ("the filter skips them (repeated_observations: skip)" if rep_share > 0.01
-                               else "nothing to do")))
+                            + ("the filter skips them by default (repeated_observations: skip); nothing to do"
+                               if rep_share > 0 else "nothing to do")))
     npd = o["non_positive_disparity"]
-    findings.append(Finding("disparity", "WARN" if npd else "OK",
+    findings.append(Finding("disparity", "OK",
                             f"{npd} observations with non-positive disparity (uL <= uR): "
-                            + ("they cannot be triangulated and are skipped" if npd else "nothing to do")))
+                            + ("they cannot be triangulated; the filter skips them; nothing to do" if npd
+                               else "nothing to do")))
 
     order = {c: i for i, c in enumerate(FINDING_CODES)}
     findings.sort(key=lambda f: order.get(f.code, len(order)))
