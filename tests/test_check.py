@@ -139,6 +139,34 @@ def test_pixel_noise_and_outliers_are_estimated():
         assert pix["outlier_share"] == pytest.approx(outliers, abs=0.015)
 
 
+def test_info_counts_and_an_imu_that_does_not_fit_the_images(clean_check):
+    drive, _ = clean_check
+    seq = drive.sequence
+    obs = seq.observations
+    pixels = obs.pixels.copy()
+    prev = obs.previous_index()
+    candidates = np.nonzero(prev >= 0)[0]
+    _, first = np.unique(obs.landmark_ids[candidates], return_index=True)  # one per landmark
+    rows = candidates[first][:20]  # 20 exact repeats of the previous frame
+    pixels[rows] = pixels[prev[rows]]
+    flipped = np.setdiff1d(np.arange(obs.n_observations), np.r_[rows, prev[rows]])[:7]
+    pixels[flipped, 2] = pixels[flipped, 0] + 1.0  # uR > uL: non-positive disparity
+    from vislam.core.sequence import StereoObservations
+
+    broken = seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels,
+                                                         obs.n_landmarks),
+                         linear_velocity_in_imu_mps=np.zeros((seq.n_frames, 3)))  # a car that never moves
+    result = check_sequence(broken, FAST)
+    counts = result.estimates["observations"]
+    assert counts["repeated"] == 20 and counts["non_positive_disparity"] == 7
+    # the images move and the IMU says it does not: no convention can explain that, so
+    # none is claimed, and the reprojection finding says why
+    assert _severity(result, "reprojection") == "WARN"
+    assert result.finding("imu-camera-rotation") is None and result.finding("velocity-association") is None
+    assert not result.estimates["conventions_checked"]
+    assert "imu_camera_rotation_correction_deg" not in result.suggested
+
+
 # ----------------------------------------------------------------------------- corrections
 
 
