@@ -21,7 +21,9 @@ In this order:
    degrees) turns its rotation block: ``R ← exp(φ) R``. The translation, the IMU origin
    in the camera frame, is kept.
 
-With every field at its default, the input object itself is returned.
+With every field at its default, the input object itself is returned, and so is a
+sequence these same corrections were already applied to (``Sequence.corrections``), so
+that a caller and the estimators may both apply them safely.
 """
 
 from __future__ import annotations
@@ -29,10 +31,11 @@ from __future__ import annotations
 import numpy as np
 
 from vislam.core.lie import so3_exp
-from vislam.core.options import FilterOptions
+from vislam.core.options import DATA_CORRECTION_FIELDS, FilterOptions
 from vislam.core.sequence import Sequence
 
-__all__ = ["apply_corrections", "shift_to_current_association", "resample_velocities", "rotate_cam_T_imu"]
+__all__ = ["apply_corrections", "correction_values", "shift_to_current_association", "resample_velocities",
+           "rotate_cam_T_imu"]
 
 
 def shift_to_current_association(u: np.ndarray) -> np.ndarray:
@@ -71,6 +74,9 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
     (see the module docstring); ``sequence`` itself when there is nothing to correct."""
     if not options.has_data_corrections:
         return sequence
+    applied = correction_values(options)
+    if sequence.corrections == applied:
+        return sequence
     u = sequence.velocities()
     if options.velocity_association == "current":
         u = shift_to_current_association(u)
@@ -80,4 +86,11 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
     cam_T_imu = np.array(options.cam_T_imu, dtype=np.float64) if options.cam_T_imu is not None else sequence.cam_T_imu
     cam_T_imu = rotate_cam_T_imu(cam_T_imu, options.imu_camera_rotation_correction_deg)
     return sequence.replace(linear_velocity_in_imu_mps=u[:, :3], angular_velocity_in_imu_radps=u[:, 3:],
-                            cam_T_imu=cam_T_imu)
+                            cam_T_imu=cam_T_imu, corrections=applied)
+
+
+def correction_values(options: FilterOptions) -> dict:
+    """The data-correction fields of ``options`` (plain values), as recorded in
+    ``Sequence.corrections``."""
+    values = options.to_dict()
+    return {name: values[name] for name in DATA_CORRECTION_FIELDS}
