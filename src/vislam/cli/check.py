@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 
 from vislam.core.check import check_sequence
+from vislam.errors import OutputError
 from vislam.tools.check_io import format_verdict, write_check_outputs
 from vislam.tools.dataset_io import load_sequence
 from vislam.tools.jsonio import dumps
@@ -37,6 +39,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    if args.out and Path(args.out).exists() and not Path(args.out).is_dir():  # before seconds of work
+        raise OutputError(f"{args.out}: exists and is not a directory (an output directory is expected)")
     sequence = load_sequence(args.data)
     result = check_sequence(sequence)
     paths = write_check_outputs(result, args.out) if args.out else []
