@@ -38,6 +38,8 @@ _LAZY = {
     "StereoCamera": "vislam.core.camera",
     # options and estimators
     "FilterOptions": "vislam.core.options",
+    "apply_corrections": "vislam.core.corrections",
+    "remap_sequence": "vislam.core.stalls",
     "LocalizationFilter": "vislam.core.filters",
     "MappingFilter": "vislam.core.filters",
     "SlamFilter": "vislam.core.filters",

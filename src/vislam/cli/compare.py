@@ -26,7 +26,7 @@ from vislam.cli.run import (
     noise_spec_from_args,
     options_from_args,
 )
-from vislam.errors import EstimationError
+from vislam.errors import ConfigError, EstimationError
 
 __all__ = ["register", "run", "format_comparison"]
 
@@ -93,11 +93,20 @@ def run(args) -> int:
 
     start_time = process_start_time() or _COMMAND_START
     # every input is checked before any work or output
+    if getattr(args, "auto", False):
+        raise ConfigError("--auto is supported by vislam run only (for now); run `vislam check DATA --out DIR` and "
+                          "pass DIR/suggested.yaml with --config")
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     data = Path(args.data)
     sequence = load_sequence(data)
     gt, gt_info = ground_truth_from_args(args, sequence)
+    if options.has_data_corrections:  # e.g. from vislam check's suggested.yaml
+        from vislam.core.corrections import apply_corrections
+
+        sequence = apply_corrections(sequence, options)
+        if gt is not None and args.gt_frame == "cam":  # camera poses -> IMU with the corrected cam_T_imu
+            gt, gt_info = ground_truth_from_args(args, sequence)
     dataset = dataset_record(sequence, data)
 
     stage = OutputStage(args.out)

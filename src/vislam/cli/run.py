@@ -145,6 +145,10 @@ def add_filter_arguments(parser) -> None:
                        help="oc: observability-constrained EKF (default); standard: the report's equations")
     noise.add_argument("--keep-all-landmarks", action="store_true", default=None,
                        help="keep every landmark in the SLAM state (the report's variant; slower)")
+    noise.add_argument("--auto", action="store_true",
+                       help="run `vislam check` on the data first and use its suggestions (noise per axis, gyro "
+                       "bias, IMU-camera rotation, velocity association, time offset) as the base of the options, "
+                       "below --config and the flags; recorded in summary.json under \"auto\"")
     noise.add_argument("--robust", action="store_true",
                        help="preset for scenes with moving traffic: "
                        + ", ".join(f"{k}={v}" for k, v in ROBUST_PRESET.items()))
@@ -252,7 +256,8 @@ def ground_truth_from_args(args, sequence):
     return gt, info
 
 
-def options_from_args(args):
+def options_from_args(args, suggestions=None):
+    """FilterOptions of defaults < ``suggestions`` (``--auto``) < --config < --robust < flags."""
     from vislam.tools.config import resolve_options
 
     overrides = dict(ROBUST_PRESET) if getattr(args, "robust", False) else {}
@@ -262,7 +267,22 @@ def options_from_args(args):
         if value is not None:
             overrides[field] = value
             flag_names[field] = flag
-    return resolve_options(args.config, overrides, flag_names)
+    return resolve_options(args.config, overrides, flag_names, base=suggestions)
+
+
+def auto_options(args, sequence, quiet: bool):
+    """``--auto``: (options, summary entry) from ``vislam check``'s suggestions on ``sequence``."""
+    from vislam.core.check import check_sequence
+
+    check = check_sequence(sequence)
+    options = options_from_args(args, check.suggested)
+    if not quiet:
+        for f in check.findings:
+            if f.severity != "OK":
+                print(f"vislam check: {f.severity} {f.code}: {f.message}", file=sys.stderr)
+    record = {"suggested": check.suggested, "findings": [f.to_dict() for f in check.findings],
+              "check_seconds": check.elapsed_s}
+    return options, record
 
 
 def make_progress(total: int, desc: str, quiet: bool):
@@ -359,7 +379,7 @@ def run(args) -> int:
     data = Path(args.data)
     sequence = load_sequence(data)
     poses = load_known_poses(args.poses, sequence) if args.poses else None
-    gt, gt_info = ground_truth_from_args(args, sequence)
+    gt, gt_info = ground_truth_from_args(args, sequence)  # checked before any work
     dataset = {"name": sequence.name, "path": str(data.resolve()), "frames": sequence.n_frames,
                "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s,
                "cam_T_imu": sequence.cam_T_imu.tolist()}
@@ -374,6 +394,14 @@ def run(args) -> int:
         # ASCII: the label also goes into the PLY header
         dataset["label"] = f"{sequence.name} + noise ({describe_noise(noise, seed=False, ascii=True)})"
         extra["injected_noise"] = injected_noise_record(noise, info)
+    if getattr(args, "auto", False):  # check what the filter will see (with any injected noise)
+        options, extra["auto"] = auto_options(args, sequence, args.quiet)
+    if options.has_data_corrections:
+        from vislam.core.corrections import apply_corrections
+
+        sequence = apply_corrections(sequence, options)  # a no-op if the estimators apply them again
+        if gt is not None and args.gt_frame == "cam":  # camera poses -> IMU with the corrected cam_T_imu
+            gt, gt_info = ground_truth_from_args(args, sequence)
 
     stage = OutputStage(args.out)
     progress, close = None, lambda: None

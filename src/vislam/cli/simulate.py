@@ -26,7 +26,23 @@ _FLAGS = {
     "pixel_noise": "pixel_noise_px",
     "velocity_noise": "velocity_noise_mps",
     "angular_noise": "angular_noise_radps",
+    "imu_frame_rotation": "imu_frame_rotation_deg",
+    "extrinsic_error_deg": "extrinsic_error_deg",
+    "velocity_shift": "velocity_shift",
+    "time_offset": "time_offset_s",
+    "gyro_bias": "gyro_bias_radps",
 }
+
+
+def _three_numbers(text: str) -> tuple[float, float, float]:
+    """argparse type for "X,Y,Z"."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z, got {text!r}") from None
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z, got {text!r}")
+    return values
 
 
 def register(subparsers) -> None:
@@ -54,6 +70,19 @@ def register(subparsers) -> None:
                         help="1-sigma white noise on each linear-velocity sample, per axis (m/s)")
     parser.add_argument("--angular-noise", type=float, default=_DEFAULTS.angular_noise_radps, metavar="RADPS",
                         help="1-sigma white noise on each angular-velocity sample, per axis (rad/s)")
+    faults = parser.add_argument_group("recording faults", "what `vislam check` should find (all off by default)")
+    faults.add_argument("--imu-frame-rotation", type=_three_numbers, default=_DEFAULTS.imu_frame_rotation_deg,
+                        metavar="X,Y,Z", help="record the velocities in a frame turned by this rotation vector "
+                        "(degrees, IMU axes), e.g. 180,0,0")
+    faults.add_argument("--extrinsic-error-deg", type=_three_numbers, default=_DEFAULTS.extrinsic_error_deg,
+                        metavar="X,Y,Z", help="record cam_T_imu with its rotation turned by this rotation vector "
+                        "(degrees, camera axes)")
+    faults.add_argument("--velocity-shift", type=int, default=_DEFAULTS.velocity_shift, metavar="N",
+                        help="recorded velocity sample k is the true sample k+N (1: sample k describes k->k+1)")
+    faults.add_argument("--time-offset", type=float, default=_DEFAULTS.time_offset_s, metavar="S",
+                        help="the velocity sample stamped t describes the motion at t+S (s)")
+    faults.add_argument("--gyro-bias", type=_three_numbers, default=_DEFAULTS.gyro_bias_radps, metavar="X,Y,Z",
+                        help="constant bias added to the angular velocities (rad/s, IMU axes)")
     parser.set_defaults(func=run)
 
 

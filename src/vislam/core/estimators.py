@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from vislam.core.corrections import apply_corrections
 from vislam.core.filters import FRAME_STAT_FIELDS, LocalizationFilter, MappingFilter, SlamFilter
 from vislam.core.lie import se3_inverse
 from vislam.core.options import MODES, FilterOptions
@@ -42,10 +43,16 @@ def run(sequence: Sequence, mode: str, options: FilterOptions | None = None, pro
     """Run one of the report's estimators (``mode`` in :data:`vislam.core.options.MODES`).
 
     ``world_T_imu`` (mapping only): the known poses; by default the localization result.
+    The options' data corrections (:func:`vislam.core.corrections.apply_corrections`)
+    are applied to ``sequence`` first; a stepwise filter fed by hand gets frames of an
+    already corrected sequence (``vislam.apply_corrections(seq, options).frames()``).
     """
     options = options or FilterOptions()
     if mode not in MODES:
         raise ConfigError(f"unknown mode {mode!r}; expected one of {', '.join(MODES)}")
+    # the options' data corrections (biases, conventions, calibration; see vislam check);
+    # a no-op without any, or when the caller already applied them
+    sequence = apply_corrections(sequence, options)
     # The filter's matrices are small (a few hundred rows): multi-threaded BLAS only adds
     # synchronization cost there (measured 4x slower on 2 cores), so use one thread.
     with threadpool_limits(limits=1, user_api="blas"):

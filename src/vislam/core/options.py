@@ -28,7 +28,8 @@ import numpy as np
 
 from vislam.errors import ConfigError
 
-__all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "STALL_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET"]
+__all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "STALL_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET",
+           "VELOCITY_ASSOCIATIONS", "DATA_CORRECTION_FIELDS"]
 
 #: The three estimators of the report.
 MODES = ("localization", "mapping", "slam")
@@ -38,6 +39,16 @@ REPEATED_POLICIES = ("skip", "split", "use")
 STALL_POLICIES = ("remap", "keep")
 #: EKF variants.
 EKF_VARIANTS = ("oc", "standard")
+#: Which velocity sample describes the interval between frames k and k+1: "next" (the
+#: sample of frame k+1, the KITTI convention and the default) or "current" (sample k).
+VELOCITY_ASSOCIATIONS = ("next", "current")
+#: Options that change the data before filtering (see vislam.core.corrections).
+DATA_CORRECTION_FIELDS = ("gyro_bias_radps", "velocity_bias_mps", "imu_camera_rotation_correction_deg", "cam_T_imu",
+                          "velocity_association", "time_offset_s")
+#: Options that are a number or three numbers (per IMU axis x, y, z).
+PER_AXIS_FIELDS = ("velocity_noise_mps", "angular_noise_radps")
+#: Options that are exactly three numbers.
+VECTOR_FIELDS = ("gyro_bias_radps", "velocity_bias_mps", "imu_camera_rotation_correction_deg")
 
 
 def _chi2_4_quantile(p: float | None) -> float:
@@ -58,13 +69,13 @@ class FilterOptions:
     """Noise, initialization and robustness parameters (units in each name)."""
 
     #: 1σ error of one linear-velocity sample, per axis (m/s). Motion noise W, linear part.
-    #: Default: a GPS-aided inertial system like KITTI's OXTS RT3003 (velocity accuracy
+    #: One number for all three axes, or three numbers (IMU x, y, z). Default: a GPS-aided inertial system like KITTI's OXTS RT3003 (velocity accuracy
     #: 0.05 km/h ≈ 0.014 m/s RMS).
-    velocity_noise_mps: float = 0.02
+    velocity_noise_mps: float | tuple[float, float, float] = 0.02
     #: 1σ error of one angular-velocity sample, per axis (rad/s). Motion noise W, angular
-    #: part. Default: the RT3003 gyro's angle random walk 0.2°/√h is 1.8e-4 rad/s per
+    #: part; one number or three (IMU x, y, z). Default: the RT3003 gyro's angle random walk 0.2°/√h is 1.8e-4 rad/s per
     #: 10 Hz sample; rounded up.
-    angular_noise_radps: float = 0.0003
+    angular_noise_radps: float | tuple[float, float, float] = 0.0003
     #: 1σ error of one pixel coordinate of a stereo observation (px). V = σ² I₄. The
     #: KITTI features scatter by ~1.5 px around their ground-truth projections; the
     #: default adds margin for the linearization of distant landmarks.
@@ -157,10 +168,43 @@ class FilterOptions:
     #: cost grows with the map). By default a landmark is marginalized when its track ends.
     keep_all_landmarks: bool = False
 
+    # --- data corrections (applied to the recording by vislam.core.corrections) ----------
+    # ``vislam check`` estimates these; all defaults leave the data untouched.
+    #: Gyro bias (rad/s, IMU x, y, z), subtracted from every angular-velocity sample.
+    gyro_bias_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: Velocity bias (m/s, IMU x, y, z), subtracted from every linear-velocity sample.
+    velocity_bias_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: Correction of the IMU-camera rotation: a rotation vector in the camera frame
+    #: (degrees; axis times angle). The rotation block of cam_T_imu becomes
+    #: ``exp(φ) @ R``; its translation (the IMU origin in the camera frame) is kept.
+    imu_camera_rotation_correction_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: Replace the recording's cam_T_imu by this 4x4 rigid transform (rows), or None to
+    #: keep it. The rotation correction above applies on top of it.
+    cam_T_imu: tuple | None = None
+    #: Which velocity sample describes the interval k -> k+1, see VELOCITY_ASSOCIATIONS.
+    velocity_association: str = "next"
+    #: Camera-IMU time offset (s): the velocity sample stamped t describes the motion at
+    #: t + time_offset_s. The velocities are resampled (linear interpolation) at the
+    #: frame times before use.
+    time_offset_s: float = 0.0
+
     def __post_init__(self):
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("gating_probability", "drift_test_probability"):
+            if f.name in PER_AXIS_FIELDS:
+                object.__setattr__(self, f.name, _per_axis(f.name, value))
+            elif f.name in VECTOR_FIELDS:
+                object.__setattr__(self, f.name, _three_numbers(f.name, value))
+            elif f.name == "cam_T_imu":
+                object.__setattr__(self, f.name, _rigid_or_none(value))
+            elif f.name == "velocity_association":
+                if value not in VELOCITY_ASSOCIATIONS:
+                    raise ConfigError(f"velocity_association must be one of {', '.join(VELOCITY_ASSOCIATIONS)}, "
+                                      f"got {value!r}")
+            elif f.name == "time_offset_s":
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                    raise ConfigError(f"time_offset_s must be a finite number (s), got {value!r}")
+            elif f.name in ("gating_probability", "drift_test_probability"):
                 if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
                                           or not 0.0 < value < 1.0):
                     raise ConfigError(f"{f.name} must be in (0, 1) or null, got {value!r}")
@@ -199,7 +243,23 @@ class FilterOptions:
     @property
     def W(self) -> np.ndarray:
         """6x6 motion noise covariance of one velocity sample, (v, ω) order."""
-        return np.diag([self.velocity_noise_mps**2] * 3 + [self.angular_noise_radps**2] * 3)
+        return np.diag(np.concatenate([self.velocity_noise_per_axis, self.angular_noise_per_axis]) ** 2)
+
+    @property
+    def velocity_noise_per_axis(self) -> np.ndarray:
+        """(3,) σ_v per IMU axis (m/s)."""
+        return np.broadcast_to(np.asarray(self.velocity_noise_mps, dtype=np.float64), (3,)).copy()
+
+    @property
+    def angular_noise_per_axis(self) -> np.ndarray:
+        """(3,) σ_ω per IMU axis (rad/s)."""
+        return np.broadcast_to(np.asarray(self.angular_noise_radps, dtype=np.float64), (3,)).copy()
+
+    @property
+    def has_data_corrections(self) -> bool:
+        """True when some option changes the data (see vislam.core.corrections)."""
+        defaults = FilterOptions.__dataclass_fields__
+        return any(getattr(self, name) != defaults[name].default for name in DATA_CORRECTION_FIELDS)
 
     @property
     def V(self) -> np.ndarray:
@@ -222,7 +282,8 @@ class FilterOptions:
 
     # --- (de)serialization ------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """Plain values (tuples as lists), safe for JSON and YAML."""
+        return {k: _as_lists(v) for k, v in dataclasses.asdict(self).items()}
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any], source: str = "options") -> "FilterOptions":
@@ -238,6 +299,8 @@ class FilterOptions:
             default = getattr(cls, key)
             if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
                 value = float(value)
+            if key in PER_AXIS_FIELDS + VECTOR_FIELDS + ("cam_T_imu",) and isinstance(value, list):
+                value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
             clean[key] = value
         try:
             return cls(**clean)
@@ -246,3 +309,53 @@ class FilterOptions:
 
     def replace(self, **changes) -> "FilterOptions":
         return dataclasses.replace(self, **changes)
+
+
+def _as_lists(value):
+    if isinstance(value, tuple):
+        return [_as_lists(v) for v in value]
+    return value
+
+
+def _number(name: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(value):
+        raise ConfigError(f"{name} must be finite numbers, got {value!r}")
+    return float(value)
+
+
+def _three_numbers(name: str, value) -> tuple[float, float, float]:
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 3:
+        raise ConfigError(f"{name} must be three numbers (x, y, z), got {value!r}")
+    return tuple(_number(name, v) for v in value)
+
+
+def _per_axis(name: str, value):
+    """A number >= 0 stays a number; three numbers >= 0 become a tuple."""
+    if isinstance(value, (list, tuple, np.ndarray)):
+        out = _three_numbers(name, value)
+        if min(out) < 0:
+            raise ConfigError(f"{name} must be >= 0 on every axis, got {value!r}")
+        return out
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"{name} must be a finite number or three finite numbers (x, y, z), got {value!r}")
+    if value < 0:
+        raise ConfigError(f"{name} must be >= 0, got {value!r}")
+    return value
+
+
+def _rigid_or_none(value):
+    if value is None:
+        return None
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"cam_T_imu must be a 4x4 matrix (4 rows of 4 numbers) or null, got {value!r}") from None
+    if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+        raise ConfigError(f"cam_T_imu must be a 4x4 matrix of finite numbers or null, got shape {a.shape}")
+    R = a[:3, :3]
+    if (not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0
+            or not np.allclose(a[3], [0.0, 0.0, 0.0, 1.0])):
+        raise ConfigError("cam_T_imu must be a rigid transform: a rotation block (orthonormal, det +1) and last "
+                          "row 0 0 0 1")
+    return tuple(tuple(float(x) for x in row) for row in a)

@@ -221,6 +221,9 @@ class Sequence:
         camera: stereo calibration (K in pixels, baseline in metres, the report's M).
         cam_T_imu: (4, 4) maps IMU coordinates into the left camera frame.
         source: where the data came from (a path, or ``"simulator"``), for messages.
+        corrections: the data corrections already applied to it (a mapping of
+            FilterOptions fields, see :func:`vislam.core.corrections.apply_corrections`),
+            or None for the data as recorded.
     """
 
     name: str
@@ -231,6 +234,7 @@ class Sequence:
     camera: StereoCamera
     cam_T_imu: np.ndarray
     source: str = ""
+    corrections: dict | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "timestamps_s", frozen_array(np.ravel(self.timestamps_s), np.float64))

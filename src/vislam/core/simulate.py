@@ -221,9 +221,30 @@ class SimulationOptions:
     #: an observation's pixels come from.
     stall_period: int = 0
 
+    # --- recording faults (what ``vislam check`` must find; see _apply_recording_faults) --
+    #: The velocities (linear and angular) are recorded in a frame turned by this rotation
+    #: vector (degrees, IMU axes) from the IMU frame, e.g. (180, 0, 0): y and z flipped.
+    imu_frame_rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: The recorded cam_T_imu's rotation block is exp(φ) R (φ this rotation vector in
+    #: degrees, camera axes); its translation is kept. The images follow the true one.
+    extrinsic_error_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: Recorded sample k is the true sample k + shift (clamped at the ends): +1 makes the
+    #: sample of frame k describe the interval k -> k+1 ("current" association).
+    velocity_shift: int = 0
+    #: The velocity sample stamped t describes the motion at t + time_offset_s (s).
+    time_offset_s: float = 0.0
+    #: Constant gyro bias added to every angular-velocity sample (rad/s, IMU x, y, z).
+    gyro_bias_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
     def __post_init__(self):
         for f in fields(self):
             value = getattr(self, f.name)
+            if f.name in _FAULT_VECTOR_FIELDS:
+                object.__setattr__(self, f.name, _three_finite(f.name, value))
+                continue
+            if f.name in ("time_offset_s", "velocity_shift"):
+                _check_fault_scalar(self, f.name, value)
+                continue
             if f.type in ("int", int):
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                     raise ConfigError(f"{f.name} must be an integer, got {value!r}")
@@ -288,7 +309,15 @@ class SimulationOptions:
 
     # --- (de)serialization ----------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        for name in _FAULT_VECTOR_FIELDS:
+            d[name] = list(d[name])
+        return d
+
+    @property
+    def has_recording_faults(self) -> bool:
+        return (any(self.imu_frame_rotation_deg) or any(self.extrinsic_error_deg) or self.velocity_shift != 0
+                or self.time_offset_s != 0 or any(self.gyro_bias_radps))
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any], source: str = "options") -> "SimulationOptions":
@@ -306,6 +335,60 @@ class SimulationOptions:
 
     def replace(self, **changes) -> "SimulationOptions":
         return dataclasses.replace(self, **changes)
+
+
+_FAULT_VECTOR_FIELDS = ("imu_frame_rotation_deg", "extrinsic_error_deg", "gyro_bias_radps")
+
+
+def _three_finite(name: str, value) -> tuple[float, float, float]:
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 3:
+        raise ConfigError(f"{name} must be three numbers (x, y, z), got {value!r}")
+    out = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
+            raise ConfigError(f"{name} must be three finite numbers, got {value!r}")
+        out.append(float(v))
+    return tuple(out)
+
+
+def _check_fault_scalar(opts, name: str, value) -> None:
+    if name == "velocity_shift":
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or abs(int(value)) > 5:
+            raise ConfigError(f"velocity_shift must be an integer in [-5, 5], got {value!r}")
+        object.__setattr__(opts, name, int(value))
+    else:
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(value) or abs(value) > 1.0:
+            raise ConfigError(f"{name} must be a number in [-1, 1] s, got {value!r}")
+        object.__setattr__(opts, name, float(value))
+
+
+def _apply_recording_faults(opts: SimulationOptions, timestamps: np.ndarray, measured: np.ndarray,
+                            cam_T_imu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The recorded (T, 6) velocities and cam_T_imu under ``opts``' recording faults.
+
+    In this order: time offset (the sample stamped t is the signal at t + δ, linear
+    interpolation, constant beyond the ends), index shift (sample k is sample k + shift),
+    gyro bias (added), the frame of the velocities (coordinates in the turned frame,
+    ``Rᵀ u``), the extrinsic error (rotation block ``exp(φ) R``).
+    """
+    from vislam.core.lie import so3_exp
+
+    u = np.array(measured, dtype=np.float64)
+    if opts.time_offset_s:
+        u = np.column_stack([np.interp(timestamps + opts.time_offset_s, timestamps, u[:, i]) for i in range(6)])
+    if opts.velocity_shift:
+        idx = np.clip(np.arange(u.shape[0]) + opts.velocity_shift, 0, u.shape[0] - 1)
+        u = u[idx]
+    u[:, 3:] += np.asarray(opts.gyro_bias_radps)
+    if any(opts.imu_frame_rotation_deg):
+        R = so3_exp(np.radians(opts.imu_frame_rotation_deg))
+        u[:, :3] = u[:, :3] @ R  # rows: (Rᵀ v)ᵀ = vᵀ R
+        u[:, 3:] = u[:, 3:] @ R
+    recorded = np.array(cam_T_imu, dtype=np.float64)
+    if any(opts.extrinsic_error_deg):
+        recorded[:3, :3] = so3_exp(np.radians(opts.extrinsic_error_deg)) @ recorded[:3, :3]
+    return u, recorded
 
 
 @dataclass(frozen=True)
@@ -1027,6 +1110,9 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
     vel_noise = streams["velocity_noise"].standard_normal((T, 6))
     sigma = np.array([opts.velocity_noise_mps] * 3 + [opts.angular_noise_radps] * 3)
     measured = true_velocities + sigma * vel_noise
+    recorded_cam_T_imu = cam_T_imu
+    if opts.has_recording_faults:
+        measured, recorded_cam_T_imu = _apply_recording_faults(opts, timestamps, measured, cam_T_imu)
 
     true_pixels = pairs.true_pixels
     if opts.stall_period > 0:
@@ -1042,7 +1128,7 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
         angular_velocity_in_imu_radps=measured[:, 3:],
         observations=StereoObservations(offsets, ids, pixels, m),
         camera=camera,
-        cam_T_imu=cam_T_imu,
+        cam_T_imu=recorded_cam_T_imu,
         source="simulator",
     )
     drive = SimulatedDrive(

@@ -195,8 +195,15 @@ def injected_noise_record(spec: NoiseSpec | None, info: Mapping[str, Any] | None
     return record
 
 
+def _g_axes(x) -> str:
+    """A number, or three per-axis numbers as "(x, y, z)"."""
+    if isinstance(x, (tuple, list)):
+        return "(" + ", ".join(_g(v) for v in x) + ")"
+    return _g(x)
+
+
 def describe_filter_noise(options: FilterOptions) -> str:
-    return f"σv {_g(options.velocity_noise_mps)} m/s, σω {_g(options.angular_noise_radps)} rad/s"
+    return f"σv {_g_axes(options.velocity_noise_mps)} m/s, σω {_g_axes(options.angular_noise_radps)} rad/s"
 
 
 # ----------------------------------------------------------------------------- comparison

@@ -3,6 +3,7 @@
 Option resolution (lowest to highest precedence):
 
 1. the documented defaults of :class:`~vislam.core.options.FilterOptions`;
+1b. with ``vislam run --auto``, the suggestions of ``vislam check`` (``base``);
 2. an options file (``--config FILE``): YAML (``.yaml``/``.yml``) or TOML (``.toml``),
    a flat mapping of FilterOptions field names to values, e.g.::
 
@@ -143,8 +144,12 @@ def _normalize(values: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def resolve_options(config_path=None, overrides: Mapping[str, Any] | None = None,
-                    flag_names: Mapping[str, str] | None = None) -> FilterOptions:
-    """FilterOptions from defaults < options file ``config_path`` < ``overrides``.
+                    flag_names: Mapping[str, str] | None = None,
+                    base: Mapping[str, Any] | None = None) -> FilterOptions:
+    """FilterOptions from defaults < ``base`` < options file ``config_path`` < ``overrides``.
+
+    ``base`` (e.g. the suggestions of ``vislam check``, for ``--auto``) is a mapping of
+    field names to values under the file and the flags.
 
     ``overrides`` maps field names to values; entries whose value is None are ignored
     (an unset flag). To switch an optional test off from the command line pass the string
@@ -152,10 +157,14 @@ def resolve_options(config_path=None, overrides: Mapping[str, Any] | None = None
     "--velocity-noise"}``) names the flags in error messages about overridden values.
     """
     values: dict[str, Any] = {}
+    if base:
+        values = _normalize(base)
+        FilterOptions.from_dict(values, source="check suggestions")
     if config_path is not None:
         source = str(config_path)
-        values = _normalize(load_options_file(config_path))
-        FilterOptions.from_dict(values, source=source)  # errors name the file
+        file_values = _normalize(load_options_file(config_path))
+        FilterOptions.from_dict(file_values, source=source)  # errors name the file
+        values = {**values, **file_values}
     given = {k: v for k, v in (overrides or {}).items() if v is not None}
     if not given:
         return FilterOptions.from_dict(values, source=str(config_path) if config_path is not None else "options")

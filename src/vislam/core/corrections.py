@@ -1,0 +1,96 @@
+"""Corrections of a recording's conventions, biases and calibration, applied to the data.
+
+``vislam check`` (:mod:`vislam.core.check`) estimates how a recording departs from the
+filter's assumptions; the estimates become :class:`~vislam.core.options.FilterOptions`
+fields (:data:`~vislam.core.options.DATA_CORRECTION_FIELDS`), and
+:func:`apply_corrections` turns them into a corrected :class:`Sequence` before any
+estimator sees it. The data file itself is never edited.
+
+In this order:
+
+1. ``velocity_association = "current"``: the sample of frame k describes the interval
+   k -> k+1. The estimators use sample k+1 for that interval (see
+   :mod:`vislam.core.propagation`), so every sample moves one frame later:
+   ``u'[k+1] = u[k]`` and ``u'[0] = u[0]``.
+2. ``time_offset_s = δ``: the sample stamped t describes the motion at t + δ, so the
+   velocity at frame time t_k is the recording's signal at t_k − δ (linear
+   interpolation between samples, held constant beyond the ends).
+3. ``gyro_bias_radps`` / ``velocity_bias_mps`` are subtracted from every sample.
+4. ``cam_T_imu`` (a 4x4 override) replaces the recording's transform; then
+   ``imu_camera_rotation_correction_deg = φ`` (rotation vector in the camera frame,
+   degrees) turns its rotation block: ``R ← exp(φ) R``. The translation, the IMU origin
+   in the camera frame, is kept.
+
+With every field at its default, the input object itself is returned, and so is a
+sequence these same corrections were already applied to (``Sequence.corrections``), so
+that a caller and the estimators may both apply them safely.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vislam.core.lie import so3_exp
+from vislam.core.options import DATA_CORRECTION_FIELDS, FilterOptions
+from vislam.core.sequence import Sequence
+
+__all__ = ["apply_corrections", "correction_values", "shift_to_current_association", "resample_velocities",
+           "rotate_cam_T_imu"]
+
+
+def shift_to_current_association(u: np.ndarray) -> np.ndarray:
+    """(T, k) samples where sample k describes k -> k+1, re-indexed for the estimators'
+    convention (sample k+1 describes k -> k+1): ``out[k+1] = u[k]``, ``out[0] = u[0]``."""
+    u = np.asarray(u, dtype=np.float64)
+    out = np.empty_like(u)
+    out[1:] = u[:-1]
+    out[:1] = u[:1]
+    return out
+
+
+def resample_velocities(timestamps_s: np.ndarray, u: np.ndarray, time_offset_s: float) -> np.ndarray:
+    """(T, k) values of the signal ``u`` (sampled at ``timestamps_s``) at the times
+    ``timestamps_s − time_offset_s``: linear interpolation, constant beyond the ends."""
+    t = np.asarray(timestamps_s, dtype=np.float64)
+    u = np.asarray(u, dtype=np.float64)
+    if time_offset_s == 0:
+        return u.copy()
+    query = t - time_offset_s
+    return np.column_stack([np.interp(query, t, u[:, i]) for i in range(u.shape[1])])
+
+
+def rotate_cam_T_imu(cam_T_imu: np.ndarray, rotation_vector_deg) -> np.ndarray:
+    """cam_T_imu with its rotation block turned by ``exp(φ)`` on the camera side
+    (φ in degrees, camera frame); the translation is kept."""
+    out = np.array(cam_T_imu, dtype=np.float64)
+    phi = np.radians(np.asarray(rotation_vector_deg, dtype=np.float64))
+    if np.any(phi):
+        out[:3, :3] = so3_exp(phi) @ out[:3, :3]
+    return out
+
+
+def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
+    """The recording as the filter should see it under ``options``' data corrections
+    (see the module docstring); ``sequence`` itself when there is nothing to correct."""
+    if not options.has_data_corrections:
+        return sequence
+    applied = correction_values(options)
+    if sequence.corrections == applied:
+        return sequence
+    u = sequence.velocities()
+    if options.velocity_association == "current":
+        u = shift_to_current_association(u)
+    if options.time_offset_s:
+        u = resample_velocities(sequence.timestamps_s, u, options.time_offset_s)
+    u = u - np.concatenate([np.asarray(options.velocity_bias_mps), np.asarray(options.gyro_bias_radps)])
+    cam_T_imu = np.array(options.cam_T_imu, dtype=np.float64) if options.cam_T_imu is not None else sequence.cam_T_imu
+    cam_T_imu = rotate_cam_T_imu(cam_T_imu, options.imu_camera_rotation_correction_deg)
+    return sequence.replace(linear_velocity_in_imu_mps=u[:, :3], angular_velocity_in_imu_radps=u[:, 3:],
+                            cam_T_imu=cam_T_imu, corrections=applied)
+
+
+def correction_values(options: FilterOptions) -> dict:
+    """The data-correction fields of ``options`` (plain values), as recorded in
+    ``Sequence.corrections``."""
+    values = options.to_dict()
+    return {name: values[name] for name in DATA_CORRECTION_FIELDS}

@@ -1,0 +1,309 @@
+"""`vislam check`: every estimate against a simulated truth (and the data corrections it
+suggests, the simulator's recording faults, the options that carry them)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from vislam.cli import main
+from vislam.core.check import CheckOptions, check_sequence, estimate_pixel_noise, estimate_white_noise
+from vislam.core.corrections import apply_corrections
+from vislam.core.lie import so3_exp, so3_log
+from vislam.core.options import FilterOptions
+from vislam.core.simulate import KITTI_CAM_T_IMU, SimulationOptions, simulate_drive
+from vislam.errors import ConfigError
+from vislam.tools.config import resolve_options
+from vislam.tools.dataset_io import load_sequence, save_sequence
+
+from conftest import shared_file
+
+SIM = SimulationOptions(seed=3, n_frames=250)
+FAST = CheckOptions(max_pairs=8000)
+CONVENTION_CODES = ("imu-camera-rotation", "velocity-association", "time-offset", "imu-bias")
+
+
+def _check(**faults):
+    drive = simulate_drive(SIM.replace(**faults))
+    return drive, check_sequence(drive.sequence, FAST)
+
+
+def _severity(result, code):
+    finding = result.finding(code)
+    assert finding is not None, code
+    return finding.severity
+
+
+def _angle_deg(R):
+    return float(np.degrees(np.linalg.norm(so3_log(R))))
+
+
+# ----------------------------------------------------------------------------- noise
+
+
+def test_white_noise_estimate_recovers_the_simulated_noise_per_axis():
+    drive = simulate_drive(SIM.replace(n_frames=600, velocity_noise_mps=0.5, angular_noise_radps=0.05))
+    u = drive.sequence.velocities()
+    sv, sv_se = estimate_white_noise(u[:, :3])
+    sw, sw_se = estimate_white_noise(u[:, 3:])
+    np.testing.assert_allclose(sv, 0.5, rtol=0.25)
+    np.testing.assert_allclose(sw, 0.05, rtol=0.25)
+    assert np.all(sv_se > 0) and np.all(sv_se < 0.1)  # an uncertainty, and a useful one
+    # the same drive without noise: the vehicle's own motion is not taken for noise
+    clean = drive.true_velocities
+    assert np.all(estimate_white_noise(clean[:, :3])[0] < 0.05)
+    assert np.all(estimate_white_noise(clean[:, 3:])[0] < 0.002)
+
+
+def test_white_noise_estimate_on_the_shared_files():
+    dense = load_sequence(shared_file("dense/0027.npz")).velocities()
+    sparse = load_sequence(shared_file("sparse/0027.npz")).velocities()
+    np.testing.assert_allclose(estimate_white_noise(dense[:, :3])[0], 0.5, rtol=0.25)
+    np.testing.assert_allclose(estimate_white_noise(dense[:, 3:])[0], 0.05, rtol=0.25)
+    assert np.all(estimate_white_noise(sparse[:, :3])[0] < 0.05)
+    assert np.all(estimate_white_noise(sparse[:, 3:])[0] < 0.002)
+
+
+# ----------------------------------------------------------------------------- faults
+
+
+@pytest.fixture(scope="module")
+def clean_check():
+    return _check()
+
+
+def test_clean_drive_has_no_convention_findings(clean_check):
+    _, result = clean_check
+    for code in CONVENTION_CODES:
+        assert _severity(result, code) == "OK", result.finding(code).message
+    assert _severity(result, "noise") == "OK"
+    assert result.estimates["imu_camera_rotation_error_deg"] < 0.5
+    assert abs(result.estimates["time_offset_s"]) < 0.01
+    assert result.suggested == {}
+
+
+def test_velocities_in_a_frame_turned_180_degrees_are_an_error_and_the_suggestion_fixes_it():
+    drive, result = _check(imu_frame_rotation_deg=(180.0, 0.0, 0.0))
+    assert _severity(result, "imu-camera-rotation") == "ERROR"
+    assert result.estimates["imu_camera_rotation_error_deg"] == pytest.approx(180.0, abs=2.0)
+    fixed = apply_corrections(drive.sequence, result.suggested_options())
+    # the velocities are in the frame IMU-turned-by-R, so cam_T_imu must become R_ci R
+    R_true = KITTI_CAM_T_IMU[:3, :3] @ so3_exp(np.array([np.pi, 0.0, 0.0]))
+    assert _angle_deg(fixed.cam_T_imu[:3, :3].T @ R_true) < 1.0
+    assert result.estimates["reprojection_after_px"]["median"] < 3.0
+    assert result.estimates["reprojection_before_px"]["median"] > result.estimates["reprojection_after_px"]["median"]
+
+
+def test_velocity_samples_one_index_early_suggest_the_current_association():
+    _, result = _check(velocity_shift=1)
+    assert _severity(result, "velocity-association") == "WARN"
+    assert result.suggested["velocity_association"] == "current"
+    assert result.estimates["velocity_association"]["best_shift"] == 0
+    assert _severity(result, "imu-camera-rotation") == "OK"
+
+
+def test_extrinsic_rotation_error_and_gyro_bias_are_estimated_together():
+    # 3° about the camera x axis, and a roll/pitch-rate bias of 0.01 rad/s
+    bias = np.array([0.01, -0.01, 0.0])
+    drive, result = _check(extrinsic_error_deg=(3.0, 0.0, 0.0), gyro_bias_radps=tuple(bias))
+    assert _severity(result, "imu-camera-rotation") == "WARN"
+    assert result.estimates["imu_camera_rotation_error_deg"] == pytest.approx(3.0, abs=0.5)
+    fixed = apply_corrections(drive.sequence, result.suggested_options())
+    assert _angle_deg(fixed.cam_T_imu[:3, :3].T @ KITTI_CAM_T_IMU[:3, :3]) < 0.5
+    assert _severity(result, "velocity-association") == "OK"
+    assert _severity(result, "imu-bias") == "WARN"
+    # roll and pitch rates of the drive itself average to ~3°/25 s at most
+    np.testing.assert_allclose(result.estimates["gyro_bias_radps"][:2], bias[:2], atol=0.003)
+    np.testing.assert_allclose(result.suggested["gyro_bias_radps"], bias, atol=0.003)
+
+
+@pytest.mark.parametrize("offset_s", [0.04, 0.08])
+def test_time_offset_is_estimated(offset_s):
+    _, result = _check(time_offset_s=offset_s)
+    assert result.estimates["time_offset_effective_s"] == pytest.approx(offset_s, abs=0.015)
+    if offset_s > 0.05:  # closer to a whole frame: the "current" association, and what is left
+        assert result.suggested["velocity_association"] == "current"
+        assert _severity(result, "velocity-association") == "WARN"
+    else:
+        assert _severity(result, "velocity-association") == "OK"
+
+
+def test_pixel_noise_and_outliers_are_estimated():
+    for noise, outliers in ((0.5, 0.0), (1.0, 0.05)):
+        drive = simulate_drive(SIM.replace(pixel_noise_px=noise, outlier_fraction=outliers))
+        pix = estimate_pixel_noise(drive.sequence)
+        assert pix["sigma_px"] == pytest.approx(noise, rel=0.2)
+        assert pix["outlier_share"] == pytest.approx(outliers, abs=0.015)
+
+
+def test_info_counts_and_an_imu_that_does_not_fit_the_images(clean_check):
+    drive, _ = clean_check
+    seq = drive.sequence
+    obs = seq.observations
+    pixels = obs.pixels.copy()
+    prev = obs.previous_index()
+    candidates = np.nonzero(prev >= 0)[0]
+    _, first = np.unique(obs.landmark_ids[candidates], return_index=True)  # one per landmark
+    rows = candidates[first][:20]  # 20 exact repeats of the previous frame
+    pixels[rows] = pixels[prev[rows]]
+    flipped = np.setdiff1d(np.arange(obs.n_observations), np.r_[rows, prev[rows]])[:7]
+    pixels[flipped, 2] = pixels[flipped, 0] + 1.0  # uR > uL: non-positive disparity
+    from vislam.core.sequence import StereoObservations
+
+    broken = seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels,
+                                                         obs.n_landmarks),
+                         linear_velocity_in_imu_mps=np.zeros((seq.n_frames, 3)))  # a car that never moves
+    result = check_sequence(broken, FAST)
+    counts = result.estimates["observations"]
+    assert counts["repeated"] == 20 and counts["non_positive_disparity"] == 7
+    # the images move and the IMU says it does not: no convention can explain that, so
+    # none is claimed, and the reprojection finding says why
+    assert _severity(result, "reprojection") == "WARN"
+    assert result.finding("imu-camera-rotation") is None and result.finding("velocity-association") is None
+    assert not result.estimates["conventions_checked"]
+    assert "imu_camera_rotation_correction_deg" not in result.suggested
+
+
+# ----------------------------------------------------------------------------- corrections
+
+
+def test_apply_corrections_is_a_no_op_by_default(clean_check):
+    drive, _ = clean_check
+    assert apply_corrections(drive.sequence, FilterOptions()) is drive.sequence
+
+
+def test_corrections_undo_the_simulated_faults():
+    truth = simulate_drive(SIM.replace(n_frames=60)).sequence
+    faulty = simulate_drive(SIM.replace(n_frames=60, velocity_shift=1, gyro_bias_radps=(0.01, 0.0, -0.02),
+                                        extrinsic_error_deg=(0.0, 2.0, 0.0))).sequence
+    fixed = apply_corrections(faulty, FilterOptions(velocity_association="current", gyro_bias_radps=(0.01, 0.0, -0.02),
+                                                    imu_camera_rotation_correction_deg=(0.0, -2.0, 0.0)))
+    np.testing.assert_allclose(fixed.velocities(), truth.velocities(), atol=1e-12)
+    np.testing.assert_allclose(fixed.cam_T_imu, truth.cam_T_imu, atol=1e-12)
+    # a time offset is undone up to the interpolation of the motion between samples
+    late = simulate_drive(SIM.replace(n_frames=60, time_offset_s=0.03)).sequence
+    back = apply_corrections(late, FilterOptions(time_offset_s=0.03))
+    rms_before = np.sqrt(np.mean((late.velocities() - truth.velocities())[5:-5] ** 2, axis=0))
+    rms_after = np.sqrt(np.mean((back.velocities() - truth.velocities())[5:-5] ** 2, axis=0))
+    assert np.all(rms_after < 0.6 * rms_before)
+
+
+def test_cam_T_imu_override_then_rotation_correction():
+    seq = simulate_drive(SIM.replace(n_frames=20)).sequence
+    override = np.eye(4)
+    override[:3, 3] = [0.1, 0.2, 0.3]
+    out = apply_corrections(seq, FilterOptions(cam_T_imu=override.tolist(),
+                                               imu_camera_rotation_correction_deg=(0.0, 0.0, 90.0)))
+    np.testing.assert_allclose(out.cam_T_imu[:3, 3], [0.1, 0.2, 0.3])  # the translation is kept
+    np.testing.assert_allclose(out.cam_T_imu[:3, :3], so3_exp(np.radians([0.0, 0.0, 90.0])), atol=1e-12)
+    np.testing.assert_array_equal(out.velocities(), seq.velocities())
+
+
+def test_apply_corrections_twice_is_applying_them_once():
+    seq = simulate_drive(SIM.replace(n_frames=30)).sequence
+    opts = FilterOptions(gyro_bias_radps=(0.01, 0.0, 0.0), velocity_association="current")
+    once = apply_corrections(seq, opts)
+    assert apply_corrections(once, opts) is once  # the run and the estimators may both call it
+    np.testing.assert_allclose(once.angular_velocity_in_imu_radps[1:, 0],
+                               seq.angular_velocity_in_imu_radps[:-1, 0] - 0.01)
+    other = apply_corrections(once, FilterOptions(gyro_bias_radps=(0.02, 0.0, 0.0)))  # different ones: applied
+    np.testing.assert_allclose(other.angular_velocity_in_imu_radps[:, 0], once.angular_velocity_in_imu_radps[:, 0] - 0.02)
+
+
+# ----------------------------------------------------------------------------- options
+
+
+def test_per_axis_noise_and_corrections_in_options(tmp_path):
+    opts = FilterOptions(velocity_noise_mps=[0.5, 0.4, 0.3], angular_noise_radps=0.05)
+    np.testing.assert_allclose(np.diag(opts.W), [0.25, 0.16, 0.09, 0.0025, 0.0025, 0.0025])
+    assert FilterOptions().W.tolist() == np.diag([0.02**2] * 3 + [0.0003**2] * 3).tolist()
+    path = tmp_path / "o.yaml"
+    full = opts.replace(gyro_bias_radps=(0.01, 0.0, 0.0), velocity_association="current", time_offset_s=0.02,
+                        cam_T_imu=np.eye(4))
+    path.write_text(yaml.safe_dump(full.to_dict()))
+    assert resolve_options(path) == full
+    assert json.loads(json.dumps(full.to_dict())) == full.to_dict()
+    for bad in ({"velocity_noise_mps": [0.1, 0.2]}, {"angular_noise_radps": [0.1, -0.2, 0.1]},
+                {"gyro_bias_radps": "0.1"}, {"velocity_association": "previous"}, {"time_offset_s": float("nan")},
+                {"cam_T_imu": np.diag([1.0, 1.0, -1.0, 1.0]).tolist()}, {"cam_T_imu": [[1.0, 0.0]]}):
+        with pytest.raises(ConfigError):
+            FilterOptions.from_dict(bad)
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def test_cli_check_writes_check_json_and_a_suggested_yaml_for_run(tmp_path, capsys):
+    drive = simulate_drive(SIM.replace(extrinsic_error_deg=(0.0, 3.0, 0.0), velocity_noise_mps=0.3,
+                                       angular_noise_radps=0.03))
+    data = tmp_path / "rotated.npz"
+    save_sequence(drive.sequence, data)
+    out = tmp_path / "out"
+    assert main(["check", str(data), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "WARN  imu-camera-rotation" in text
+    report = json.loads((out / "check.json").read_text())
+    assert len(report["imu_noise"]["velocity_mps"]) == 3 and len(report["imu_noise"]["angular_radps"]) == 3
+    assert "imu_camera_rotation_error_deg" in report
+    codes = {f["code"] for f in report["findings"]}
+    assert set(CONVENTION_CODES) | {"noise"} <= codes
+    options = resolve_options(out / "suggested.yaml")
+    # the suggestion is the estimate, and the estimate is within 3 of its standard errors
+    np.testing.assert_allclose(options.imu_camera_rotation_correction_deg, report["imu_camera_rotation_correction_deg"],
+                               atol=1e-3)
+    error = np.abs(np.array(report["imu_camera_rotation_correction_deg"]) - [0.0, -3.0, 0.0])
+    assert np.all(error <= 3 * np.array(report["imu_camera_rotation_correction_deg_se"])), error
+    np.testing.assert_allclose(options.velocity_noise_per_axis, 0.3, rtol=0.3)
+    np.testing.assert_allclose(options.angular_noise_per_axis, 0.03, rtol=0.3)
+    assert report["suggested_options"] == json.loads(json.dumps(report["suggested_options"]))
+
+
+def test_cli_run_auto_uses_and_records_the_suggestions(tmp_path):
+    drive = simulate_drive(SIM.replace(n_frames=200, velocity_shift=1))
+    data = tmp_path / "shifted.npz"
+    save_sequence(drive.sequence, data)
+    out = tmp_path / "run"
+    assert main(["run", str(data), "--mode", "localization", "--auto", "--quiet", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["auto"]["suggested"]["velocity_association"] == "current"
+    assert summary["options"]["velocity_association"] == "current"
+    assert {f["code"] for f in summary["auto"]["findings"]} >= set(CONVENTION_CODES)
+    # the correction was applied: dead reckoning with it follows the true poses
+    est = np.loadtxt(out / "trajectory.kitti").reshape(-1, 3, 4)[:, :, 3]
+    assert np.max(np.linalg.norm(est - drive.world_T_imu[:, :3, 3], axis=1)) < 0.05
+    # flags and --config stay above the suggestions
+    assert main(["run", str(data), "--mode", "localization", "--auto", "--quiet", "--velocity-noise", "0.7",
+                 "--out", str(out)]) == 0
+    assert json.loads((out / "summary.json").read_text())["options"]["velocity_noise_mps"] == 0.7
+    # not (yet) for compare: a one-line error before any output
+    assert main(["compare", str(data), "--auto", "--out", str(tmp_path / "cmp")]) != 0
+    assert not (tmp_path / "cmp").exists()
+
+
+def test_cli_simulate_fault_flags(tmp_path):
+    out = tmp_path / "sim"
+    assert main(["simulate", "--out", str(out), "--frames", "30", "--extrinsic-error-deg", "0,3,0",
+                 "--velocity-shift", "1", "--gyro-bias", "0.01,0,0", "--imu-frame-rotation", "180,0,0"]) == 0
+    seq = load_sequence(out / "sequence.npz")
+    assert _angle_deg(seq.cam_T_imu[:3, :3] @ KITTI_CAM_T_IMU[:3, :3].T) == pytest.approx(3.0, abs=1e-6)
+    truth = simulate_drive(SimulationOptions(n_frames=30)).sequence
+    w = truth.angular_velocity_in_imu_radps
+    expected = (w[np.minimum(np.arange(30) + 1, 29)] + [0.01, 0.0, 0.0]) * [1.0, -1.0, -1.0]
+    np.testing.assert_allclose(seq.angular_velocity_in_imu_radps, expected, atol=1e-12)
+    with pytest.raises(SystemExit):  # argparse: usage message and exit code 2
+        main(["simulate", "--out", str(out), "--gyro-bias", "1,2"])
+
+
+def test_simulation_faults_default_off_and_validated():
+    opts = SimulationOptions()
+    assert not opts.has_recording_faults
+    with pytest.raises(ConfigError):
+        SimulationOptions(velocity_shift=1.5)
+    with pytest.raises(ConfigError):
+        SimulationOptions(extrinsic_error_deg=(1.0, 2.0))
+    assert SimulationOptions.from_dict(opts.replace(gyro_bias_radps=(0.1, 0, 0)).to_dict()).gyro_bias_radps == (0.1,
+                                                                                                                 0.0,
+                                                                                                                 0.0)
