@@ -62,11 +62,13 @@ ordinary steps, before and after the remap, and adds the segment timing residual
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections import deque
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
+from vislam.core.bookkeeping import IdTable, in_sorted
 from vislam.core.lie import se3_inverse
 from vislam.core.propagation import dead_reckoning
 from vislam.core.sequence import Sequence, StereoObservations
@@ -553,7 +555,6 @@ class StallRemapBuffer:
     def __init__(self, max_delay_frames: int):
         from collections import deque
 
-        from vislam.core.bookkeeping import IdTable
 
         if max_delay_frames < 0:
             raise ValueError("max_delay_frames must be >= 0")
@@ -583,16 +584,15 @@ class StallRemapBuffer:
         tr = self._tracks
         # tracks not observed now have ended (a gap starts a new track)
         if len(tr):
-            gone = tr.ids[~np.isin(tr.ids, ids, assume_unique=True)]
-            tr.remove(gone)
-        rows = tr.rows(ids)
-        cont = rows >= 0
-        cont[cont] = tr["last"][rows[cont]] == k - 1
-        new = ~cont
-        if np.any(new):
-            tr.remove(ids[new & (rows >= 0)])
+            gone = ~in_sorted(tr.ids, ids)
+            if gone.any():
+                tr.remove(tr.ids[gone])
+        rows = tr.rows(ids)  # every live track was seen in frame k − 1 (the others are gone)
+        new = rows < 0
+        if new.any():
             tr.add(ids[new])
             rows = tr.rows(ids)
+        cont = ~new
         rep = cont & np.all(tr["px"][rows] == z, axis=1)
         tr["lag"][rows[rep]] += 1
         tr["last"][rows] = k
@@ -620,8 +620,6 @@ class StallRemapBuffer:
         return [self._release() for _ in range(len(self._pending))]
 
     def _release(self):
-        from dataclasses import replace
-
         _, frame, id_parts, px_parts = self._pending.popleft()
         if id_parts:
             ids = np.concatenate(id_parts)

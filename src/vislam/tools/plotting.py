@@ -28,9 +28,11 @@ from vislam.tools.atomic import atomic_path
 __all__ = ["TrajectoryCurve", "MapLayer", "plot_trajectory_map", "plot_comparison_map", "plot_grouped_bars",
            "view_limits", "FIGSIZE_IN", "DPI"]
 
-FIGSIZE_IN = (8.0, 8.0)
-#: Size of :func:`plot_comparison_map`'s figure (legend below the axes).
-COMPARISON_FIGSIZE_IN = (8.0, 9.0)
+FIGSIZE_IN = (8.0, 10.0)
+#: Size of :func:`plot_comparison_map`'s figure (legend below the map, then the side view).
+COMPARISON_FIGSIZE_IN = (8.0, 11.5)
+#: Height ratio of the top view to the side view (height over distance) below it.
+SIDE_VIEW_RATIOS = (4.0, 1.25)
 DPI = 120
 #: Margin around the trajectories' extent: this share of the larger side, at least MIN_MARGIN_M.
 MARGIN_FRACTION = 0.08
@@ -81,6 +83,36 @@ def _label_map_axes(fig, ax, title: str, subtitle: str | None) -> None:
         ax.set_title(title, fontsize=13)
 
 
+def _distance_travelled(world_T_imu: np.ndarray) -> np.ndarray:
+    """(T,) cumulative 3D path length (m) of a trajectory."""
+    p = np.asarray(world_T_imu, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
+    if p.shape[0] == 0:
+        return np.zeros(0)
+    step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(np.where(np.isfinite(step), step, 0.0))])
+
+
+def _side_view(ax, series) -> None:
+    """Height z over distance travelled, one line per ``(world_T_imu, color, linestyle,
+    linewidth, alpha)``: what a top view hides (a filter climbing with a gyro bias)."""
+    zs = []
+    for world_T_imu, color, ls, lw, alpha in series:
+        poses = np.asarray(world_T_imu, dtype=np.float64).reshape(-1, 4, 4)
+        if poses.shape[0] == 0:
+            continue
+        z = poses[:, 2, 3]
+        zs.append(z[np.isfinite(z)])
+        ax.plot(_distance_travelled(poses), z, color=color, ls=ls, lw=lw, alpha=alpha)
+    ax.set_xlabel("distance travelled [m]")
+    ax.set_ylabel("height z [m]")
+    ax.set_title("side view: height over distance", fontsize=9, color="0.3")
+    ax.grid(True, lw=0.4, alpha=0.5)
+    z = np.concatenate(zs) if zs else np.zeros(0)
+    if z.size:  # at least ±5 m, so that centimetre wiggles do not look like hills
+        mid, half = 0.5 * (z.min() + z.max()), max(0.5 * (z.max() - z.min()) * 1.1, 5.0)
+        ax.set_ylim(mid - half, mid + half)
+
+
 def _fit_equal_aspect(fig, ax, limits) -> tuple[tuple[float, float], tuple[float, float]]:
     """Set the view ``limits`` (x0, x1, y0, y1), widened on the shorter side so that the
     equal-aspect data box fills the axes box laid out by tight_layout; returns (xlim, ylim)."""
@@ -106,8 +138,9 @@ def _fit_equal_aspect(fig, ax, limits) -> tuple[tuple[float, float], tuple[float
 
 def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, title: str = "",
                         subtitle: str | None = None) -> dict:
-    """Draw ``curves`` and ``landmarks`` (a LandmarkMap or None) in the xy plane; save a
-    PNG at ``path`` (8x8 in, 120 dpi) atomically.
+    """Draw ``curves`` and ``landmarks`` (a LandmarkMap or None) in the xy plane, with a
+    side view (height over distance travelled) below; save a PNG at ``path`` (8x10 in,
+    120 dpi) atomically.
 
     Returns ``{"xlim", "ylim", "landmarks_outside_view"}`` of the figure drawn.
     """
@@ -117,7 +150,9 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
 
     fig = Figure(figsize=FIGSIZE_IN, dpi=DPI)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    grid = fig.add_gridspec(2, 1, height_ratios=SIDE_VIEW_RATIOS)
+    ax = fig.add_subplot(grid[0])
+    _side_view(fig.add_subplot(grid[1]), [(c.world_T_imu, c.color, c.linestyle, c.linewidth, 1.0) for c in curves])
 
     handles: list = []
     p = np.zeros((0, 2))
@@ -218,7 +253,11 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
 
     fig = Figure(figsize=COMPARISON_FIGSIZE_IN, dpi=DPI)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    grid = fig.add_gridspec(2, 1, height_ratios=SIDE_VIEW_RATIOS, hspace=0.55)
+    ax = fig.add_subplot(grid[0])
+    side = [] if ground_truth is None else [(ground_truth, "0.2", "-", 3.0, 0.45)]
+    _side_view(fig.add_subplot(grid[1]), side + [(layer.world_T_imu, layer.color, layer.linestyle, layer.linewidth,
+                                                  1.0) for layer in layers])
     layer_xy = [np.asarray(layer.world_T_imu, dtype=np.float64).reshape(-1, 4, 4)[:, :2, 3] for layer in layers]
     gt_xy = None if ground_truth is None else np.asarray(ground_truth, dtype=np.float64).reshape(-1, 4, 4)[:, :2, 3]
 
