@@ -141,8 +141,8 @@ class _History:
         self._processed = deque(maxlen=self.HISTORY)
 
     def _record(self, stats: "FrameStats") -> None:
-        cov = self.pose_covariance
-        self._processed.append((stats.frame, np.array(self.imu_T_world), None if cov is None else np.array(cov), stats))
+        cov = self.pose_covariance  # a copy (or None)
+        self._processed.append((stats.frame, np.array(self.imu_T_world), cov, stats))
 
     def pop_processed(self) -> list:
         """``[(t, imu_T_world (4, 4), pose_covariance (6, 6) or None, FrameStats), ...]`` of
@@ -175,6 +175,9 @@ class _FrozenLog:
 
 def _twist(linear_velocity, angular_velocity) -> np.ndarray:
     """u = (v, ω), the report's twist order."""
+    if isinstance(linear_velocity, np.ndarray) and isinstance(angular_velocity, np.ndarray) \
+            and linear_velocity.shape == angular_velocity.shape == (3,):
+        return np.concatenate([linear_velocity, angular_velocity]).astype(np.float64, copy=False)
     return np.concatenate([np.asarray(linear_velocity, dtype=np.float64).reshape(3),
                            np.asarray(angular_velocity, dtype=np.float64).reshape(3)])
 
@@ -186,8 +189,12 @@ def _check_dt(dt_s) -> float:
     return dt
 
 
-def _observations(ids, pixels) -> tuple[np.ndarray, np.ndarray]:
-    """Checked (ids (n,), pixels (n, 4)) of one frame."""
+def _observations(ids, pixels, trusted: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Checked (ids (n,), pixels (n, 4)) of one frame (``trusted``: the arrays of a
+    :class:`Frame`, already validated by its sequence — only converted)."""
+    if trusted and isinstance(ids, np.ndarray) and ids.dtype == np.int64 and isinstance(pixels, np.ndarray) \
+            and pixels.dtype == np.float64:
+        return ids, pixels
     ids = np.asarray(ids)
     pixels = np.asarray(pixels, dtype=np.float64)
     if ids.ndim != 1 or pixels.shape != (ids.shape[0], 4):
@@ -653,7 +660,7 @@ class SlamFilter(_FrozenLog, _History):
     def _step_now(self, frame: Frame) -> FrameStats:
         if self._t >= 0:
             self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
-        return self.update(frame.landmark_ids, frame.pixels)
+        return self.update(frame.landmark_ids, frame.pixels, _trusted=True)
 
     def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
         """Step 1, the report's prediction::
@@ -672,12 +679,12 @@ class SlamFilter(_FrozenLog, _History):
         self._last_correction = np.zeros(6)  # used once: the next correction comes with the next update
         self._tau2_sum += tau * tau
 
-    def update(self, ids, pixels) -> FrameStats:
+    def update(self, ids, pixels, _trusted: bool = False) -> FrameStats:
         """Steps 2–7 with the stereo observations of a new frame: ``ids`` (n,) strictly
         increasing, ``pixels`` (n, 4) ``[uL, vL, uR, vR]``. Raises EstimationError (and
         the filter stops) on a numerical failure."""
         self._require_healthy()
-        ids_seen, z = _observations(ids, pixels)
+        ids_seen, z = _observations(ids, pixels, _trusted)
         self._t += 1
         t = self._t
         self.stats.frames += 1
