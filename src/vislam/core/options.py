@@ -28,10 +28,15 @@ import numpy as np
 
 from vislam.errors import ConfigError
 
-__all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET"]
+__all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET", "STALLED_POLICIES",
+           "KERNELS"]
 
-#: The three estimators of the report.
-MODES = ("localization", "mapping", "slam")
+#: The three estimators of the report, and the sliding-window smoother (vislam.core.smoother).
+MODES = ("localization", "mapping", "slam", "smoother")
+#: Policies for stalled tracks (see FilterOptions.stalled_tracks).
+STALLED_POLICIES = ("remap", "skip")
+#: Robust kernels of the smoother and of its batch refinement.
+KERNELS = ("cauchy", "huber", "none")
 #: Policies for observations that repeat the previous frame's pixels exactly.
 REPEATED_POLICIES = ("skip", "split", "use")
 #: EKF variants.
@@ -140,6 +145,50 @@ class FilterOptions:
     #: cost grows with the map). By default a landmark is marginalized when its track ends.
     keep_all_landmarks: bool = False
 
+    # --- stalled tracks ------------------------------------------------------------------
+    #: At the KITTI feature files' re-detection frames, continuing tracks repeat their
+    #: previous pixels and from then on lag one frame behind (each further stall adds one
+    #: frame). "remap" (default) drops the repeat and assigns a track's observation at
+    #: frame k to the pose of frame k − (stalls since the track began); "skip" only drops
+    #: the repeat. Used by the smoother (mode "smoother"); needs repeated_observations
+    #: other than "use" (which turns repeat detection off).
+    stalled_tracks: str = "remap"
+
+    # --- sliding-window smoother (mode "smoother", vislam.core.smoother) ---------------
+    #: Length of the fixed-lag window (s): poses older than this, and landmarks not
+    #: observed for this long, are marginalized. 3 s = 30 frames at 10 Hz.
+    smoother_window_s: float = 3.0
+    #: Robust kernel of the stereo factors: "cauchy" (default), "huber" or "none".
+    smoother_kernel: str = "cauchy"
+    #: Scale of the kernel in units of the whitened error (σ = pixel_noise_px).
+    smoother_kernel_scale: float = 1.0
+    #: iSAM2 relinearization threshold (norm of a variable's tangent update).
+    smoother_relinearize_threshold: float = 0.05
+    #: 1σ of the weak position prior on each new landmark (m), around its triangulation.
+    smoother_landmark_prior_m: float = 30.0
+    #: An observation whose whitened error (norm, in σ) exceeds this after the update of
+    #: its frame is removed from the smoother (counted as gated); a landmark gated
+    #: max_consecutive_gated times in a row is rejected. 0 disables the check.
+    smoother_outlier_sigma: float = 6.0
+    #: Compute the marginal covariance of the newest pose every frame (the result's
+    #: pose_covariance; GTSAM's marginal of the newest pose costs about as much as the
+    #: update itself). False: no pose covariance (None), faster.
+    smoother_pose_covariance: bool = True
+
+    # --- batch refinement (mode "smoother" with refine) ----------------------------------
+    #: After the smoother, a batch Levenberg-Marquardt pass over the whole drive from the
+    #: smoother's final estimate (``vislam run --refine``).
+    refine: bool = False
+    #: Robust kernel of the refinement's stereo factors.
+    refine_kernel: str = "huber"
+    #: Scale of the refinement's kernel, in units of the whitened error.
+    refine_kernel_scale: float = 1.0
+    #: Second pass without the stereo factors whose reprojection error after the first
+    #: pass exceeds this (px; largest of the three StereoPoint2 coordinates).
+    refine_outlier_px: float = 6.0
+    #: Iteration limit of each Levenberg-Marquardt pass.
+    refine_max_iterations: int = 100
+
     def __post_init__(self):
         for f in fields(self):
             value = getattr(self, f.name)
@@ -150,14 +199,20 @@ class FilterOptions:
             elif f.name == "repeated_observations":
                 if value not in REPEATED_POLICIES:
                     raise ConfigError(f"repeated_observations must be one of {', '.join(REPEATED_POLICIES)}, got {value!r}")
+            elif f.name == "stalled_tracks":
+                if value not in STALLED_POLICIES:
+                    raise ConfigError(f"stalled_tracks must be one of {', '.join(STALLED_POLICIES)}, got {value!r}")
+            elif f.name in ("smoother_kernel", "refine_kernel"):
+                if value not in KERNELS:
+                    raise ConfigError(f"{f.name} must be one of {', '.join(KERNELS)}, got {value!r}")
             elif f.name == "ekf":
                 if value not in EKF_VARIANTS:
                     raise ConfigError(f"ekf must be one of {', '.join(EKF_VARIANTS)}, got {value!r}")
             elif isinstance(f.default, bool):
                 if not isinstance(value, bool):
                     raise ConfigError(f"{f.name} must be true or false, got {value!r}")
-            elif f.name in ("max_consecutive_gated", "init_frames", "probation_frames"):
-                low = 1 if f.name == "init_frames" else 0
+            elif f.name in ("max_consecutive_gated", "init_frames", "probation_frames", "refine_max_iterations"):
+                low = 1 if f.name in ("init_frames", "refine_max_iterations") else 0
                 if isinstance(value, bool) or not isinstance(value, int) or value < low:
                     raise ConfigError(f"{f.name} must be an integer >= {low}, got {value!r}")
             else:
@@ -167,6 +222,10 @@ class FilterOptions:
                     raise ConfigError(f"{f.name} must be >= 0, got {value!r}")
         if self.pixel_noise_px <= 0:
             raise ConfigError("pixel_noise_px must be > 0 (the update needs a positive-definite V)")
+        for name in ("smoother_window_s", "smoother_kernel_scale", "smoother_landmark_prior_m", "refine_kernel_scale",
+                     "refine_outlier_px"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")
         if self.min_depth_m >= self.max_depth_m:
             raise ConfigError("min_depth_m must be smaller than max_depth_m")
 
