@@ -182,8 +182,7 @@ class SmootherFilter:
         self._prior_factors: list = []
         self._stereo_factors: list = []  # GenericStereoFactor3D (base noise, no kernel)
         self._stereo_removed: set[int] = set()
-        self._to_remove: list[int] = []
-        self._stereo_pixels: list = []  # (uL, uR, v) of each stereo factor  # smoother factor indices to remove with the next update
+        self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
         self.timings = {"marginals_s": 0.0, "update_s": 0.0}
 
     # --- read access ----------------------------------------------------------------
@@ -388,7 +387,6 @@ class SmootherFilter:
         f = g.GenericStereoFactor3D(meas, self._stereo_noise, self._X(k), self._L(key), self._K, self._body_P_sensor)
         self._stereo_factors.append(g.GenericStereoFactor3D(meas, self._stereo_base, self._X(k), self._L(key), self._K,
                                                             self._body_P_sensor))
-        self._stereo_pixels.append((float(pix[0]), float(pix[2]), 0.5 * float(pix[1] + pix[3])))
         return f
 
     def _check_outliers(self, t: int, added: list, factor_index: list) -> None:
@@ -398,13 +396,13 @@ class SmootherFilter:
             return
         opts = self.options
         n_added = len(added)
-        poses = {}
-        err = np.empty(n_added)
-        for j, (lm, k, pix, _) in enumerate(added):
-            if k not in poses:
-                poses[k] = self._pose_value[k] = self._smoother.calculateEstimatePose3(self._X(k)).matrix()
-            p = self._smoother.calculateEstimatePoint3(self._L(lm.key))
-            err[j] = self._whitened_norm(poses[k], p, pix)
+        frames = np.array([a[1] for a in added], dtype=np.int64)
+        uniq, inv = np.unique(frames, return_inverse=True)
+        for k in uniq.tolist():
+            self._pose_value[k] = self._smoother.calculateEstimatePose3(self._X(k)).matrix()
+        poses = np.array([self._pose_value[k] for k in uniq.tolist()])
+        p = np.array([self._smoother.calculateEstimatePoint3(self._L(a[0].key)) for a in added]).reshape(n_added, 3)
+        err = self._whitened_norms(poses[inv], p, np.array([a[2] for a in added]))
         limit = opts.smoother_outlier_sigma if opts.smoother_outlier_sigma > 0 else np.inf
         bad = err > limit
         remove = []
@@ -429,17 +427,19 @@ class SmootherFilter:
                 self.stats.observations_used += 1
         self._to_remove = remove  # with the next update (the landmark stays in the window until then)
 
-    def _whitened_norm(self, world_T_imu: np.ndarray, p: np.ndarray, pix: np.ndarray) -> float:
+    def _whitened_norms(self, world_T_imu: np.ndarray, p: np.ndarray, pix: np.ndarray) -> np.ndarray:
+        """(n,) norms of the whitened (uL, uR, v) errors of observations ``pix`` (n, 4) of
+        landmarks ``p`` (n, 3) from poses (n, 4, 4); inf behind the camera."""
         cam_T_world = self.model.cam_T_imu @ se3_inverse(world_T_imu)
-        q = cam_T_world[:3, :3] @ p + cam_T_world[:3, 3]
-        if not q[2] > 1e-6:
-            return np.inf
+        q = np.einsum("kij,kj->ki", cam_T_world[:, :3, :3], p) + cam_T_world[:, :3, 3]
         cam = self.calibration.camera
-        uL = cam.fsu * q[0] / q[2] + cam.cu
-        uR = cam.fsu * (q[0] - cam.baseline_m) / q[2] + cam.cu
-        v = cam.fsv * q[1] / q[2] + cam.cv
-        r = (np.array([uL, uR, v]) - np.array([pix[0], pix[2], 0.5 * (pix[1] + pix[3])])) / self._sigmas
-        return float(np.sqrt(r @ r))
+        front = q[:, 2] > 1e-6
+        z = np.where(front, q[:, 2], 1.0)
+        pred = np.stack([cam.fsu * q[:, 0] / z + cam.cu, cam.fsu * (q[:, 0] - cam.baseline_m) / z + cam.cu,
+                         cam.fsv * q[:, 1] / z + cam.cv], axis=1)
+        meas = np.stack([pix[:, 0], pix[:, 2], 0.5 * (pix[:, 1] + pix[:, 3])], axis=1)
+        r = (pred - meas) / self._sigmas
+        return np.where(front, np.sqrt(np.einsum("ki,ki->k", r, r)), np.inf)
 
     def _marginalize(self, cutoff: float) -> None:
         """Freeze the poses and landmarks whose timestamp is before ``cutoff`` (they leave
@@ -462,35 +462,42 @@ class SmootherFilter:
         pose = self._final_pose.get(k)
         return self._pose_value[k] if pose is None else pose
 
-    def _landmark_covariance(self, lm: _Landmark, p: np.ndarray) -> np.ndarray:
-        """3x3 covariance of a landmark given the poses of its observations: the inverse
-        of the information of its kept stereo factors (whitened Jacobians of
-        (uL, uR, v) at the estimate) plus its prior. The pose uncertainty is not
-        included (conditional, not marginal: GTSAM's marginals of landmarks deep in
-        the Bayes tree cost ~50 ms each)."""
+    def _landmark_covariances(self, lms: list, p: np.ndarray) -> np.ndarray:
+        """(n, 3, 3) covariances of landmarks given the poses of their observations: the
+        inverse of the information of their kept stereo factors (whitened Jacobians of
+        (uL, uR, v) at the estimate) plus their prior. The pose uncertainty is not
+        included (conditional, not marginal: GTSAM's marginals of landmarks deep in the
+        Bayes tree cost ~50 ms each)."""
         cam = self.calibration.camera
-        info = np.eye(3) / self.options.smoother_landmark_prior_m**2
-        for k, _ in lm.obs:
-            cam_T_world = self.model.cam_T_imu @ se3_inverse(self._pose_estimate(k))
-            R = cam_T_world[:3, :3]
-            x, y, zc = R @ p + cam_T_world[:3, 3]
-            if not zc > 1e-6:
-                continue
-            J = np.array([[cam.fsu / zc, 0.0, -cam.fsu * x / zc**2],
-                          [cam.fsu / zc, 0.0, -cam.fsu * (x - cam.baseline_m) / zc**2],
-                          [0.0, cam.fsv / zc, -cam.fsv * y / zc**2]]) @ R / self._sigmas[:, None]
-            info += J.T @ J
+        n = len(lms)
+        info = np.broadcast_to(np.eye(3) / self.options.smoother_landmark_prior_m**2, (n, 3, 3)).copy()
+        owner = np.array([j for j, lm in enumerate(lms) for _ in lm.obs], dtype=np.int64)
+        if owner.size == 0:
+            return np.linalg.inv(info)
+        frames = np.array([k for lm in lms for k, _ in lm.obs], dtype=np.int64)
+        uniq, inv = np.unique(frames, return_inverse=True)
+        cam_T_world = self.model.cam_T_imu @ se3_inverse(np.array([self._pose_estimate(int(k)) for k in uniq]))
+        R = cam_T_world[inv, :3, :3]
+        q = np.einsum("kij,kj->ki", R, p[owner]) + cam_T_world[inv, :3, 3]
+        ok = q[:, 2] > 1e-6
+        x, y, zc = q[ok, 0], q[ok, 1], q[ok, 2]
+        J = np.zeros((x.size, 3, 3))
+        J[:, 0, 0] = J[:, 1, 0] = cam.fsu / zc
+        J[:, 0, 2] = -cam.fsu * x / zc**2
+        J[:, 1, 2] = -cam.fsu * (x - cam.baseline_m) / zc**2
+        J[:, 2, 1] = cam.fsv / zc
+        J[:, 2, 2] = -cam.fsv * y / zc**2
+        J = (J @ R[ok]) / self._sigmas[None, :, None]
+        np.add.at(info, owner[ok], np.swapaxes(J, 1, 2) @ J)
         return np.linalg.inv(info)
 
     def _freeze_landmarks(self, lms) -> None:
         if not lms:
             return
         n = len(lms)
-        p = np.empty((n, 3))
-        cov = np.empty((n, 3, 3))
+        p = np.array([self._smoother.calculateEstimatePoint3(self._L(lm.key)) for lm in lms]).reshape(n, 3)
+        cov = self._landmark_covariances(lms, p)
         for j, lm in enumerate(lms):
-            p[j] = self._smoother.calculateEstimatePoint3(self._L(lm.key))
-            cov[j] = self._landmark_covariance(lm, p[j])
             self._final_lm[lm.key] = p[j]
             del self._landmarks[lm.key]
         ids = np.array([lm.id for lm in lms], dtype=np.int64)
