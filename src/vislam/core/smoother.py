@@ -9,7 +9,7 @@ runs it like any EKF. Its factor graph, per frame k:
   ``BetweenFactorPose3`` with covariance ``τ_k² W`` (W reordered to (ω, v)); the first
   pose has a prior at the identity (the world frame);
 * each stereo observation ``[uL, vL, uR, vR]`` as a ``GenericStereoFactor3D`` on
-  ``StereoPoint2(uL, uR, (vL+vR)/2)`` with σ = ``pixel_noise_px`` (σ/√2 on the row), the
+  ``StereoPoint2(uL, uR, (vL+vR)/2)`` with σ = ``smoother_pixel_noise_px`` (σ/√2 on the row), the
   IMU-to-camera transform as ``body_P_sensor`` and a robust kernel
   (``smoother_kernel``, ``smoother_kernel_scale`` in σ);
 * a new landmark from the EKF's initialization guards and the stereo model's inverse,
@@ -135,7 +135,7 @@ class SmootherFilter:
         self._V = opts.V
         self._K = gtsam.Cal3_S2Stereo(cam.fsu, cam.fsv, 0.0, cam.cu, cam.cv, cam.baseline_m)
         self._body_P_sensor = gtsam.Pose3(_rigid(self.model.imu_T_cam))
-        s = opts.pixel_noise_px
+        s = opts.pixel_noise_px if opts.smoother_pixel_noise_px is None else opts.smoother_pixel_noise_px
         self._sigmas = np.array([s, s, s / np.sqrt(2.0)])
         base = gtsam.noiseModel.Diagonal.Sigmas(self._sigmas)
         self._stereo_noise = _kernel(gtsam, opts.smoother_kernel, opts.smoother_kernel_scale, base)
