@@ -183,6 +183,7 @@ class SmootherFilter:
         self._stereo_factors: list = []  # GenericStereoFactor3D (base noise, no kernel)
         self._stereo_removed: set[int] = set()
         self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
+        self._unchecked: tuple = (-1, [], [])  # (frame, observations, factor indices) not yet checked
         self.timings = {"marginals_s": 0.0, "update_s": 0.0}
 
     # --- read access ----------------------------------------------------------------
@@ -379,7 +380,10 @@ class SmootherFilter:
         if len(factor_index) != n_new:  # pragma: no cover - gtsam contract
             raise EstimationError(f"gtsam returned {len(factor_index)} factor indices for {n_new} factors", frame=t)
         # graph order: the pose factor, the stereo factors of `added`, then (prior, stereo) per new landmark
-        self._check_outliers(t, added, factor_index[1:1 + len(added)])
+        # check the previous frame's observations (their poses and landmarks have had two
+        # updates now); those that fail are removed with the next update
+        previous, self._unchecked = self._unchecked, (t, added, factor_index[1:1 + len(added)])
+        self._check_outliers(*previous)
 
     def _stereo(self, pix: np.ndarray, k: int, key: int):
         g = self._g
@@ -390,8 +394,18 @@ class SmootherFilter:
         return f
 
     def _check_outliers(self, t: int, added: list, factor_index: list) -> None:
-        """Whitened errors of this frame's observations of existing landmarks after the
-        update: those beyond ``smoother_outlier_sigma`` are removed (gated)."""
+        """Whitened errors of frame t's observations of existing landmarks after the
+        update of frame t + 1: those beyond ``smoother_outlier_sigma`` are removed
+        (gated) with the next update. (Right after their own update the newest pose has
+        had one Gauss-Newton step only: on the simulator, checking then gated good
+        observations and doubled the error.)"""
+        # observations whose pose or landmark has left the window since are final: used
+        live = [a[1] in self._pose_stamp and a[0].key in self._landmarks for a in added]
+        for a, ok in zip(added, live):
+            if not ok:
+                self._accept(a[0], t)
+        factor_index = [f for f, ok in zip(factor_index, live) if ok]
+        added = [a for a, ok in zip(added, live) if ok]
         if not added:
             return
         opts = self.options
@@ -421,11 +435,14 @@ class SmootherFilter:
                         del self._tracks[lm.id]
                         self._rejected_ids.add(lm.id)
             else:
-                lm.nobs += 1
-                lm.last = t
-                lm.consecutive = 0
-                self.stats.observations_used += 1
+                self._accept(lm, t)
         self._to_remove = remove  # with the next update (the landmark stays in the window until then)
+
+    def _accept(self, lm: _Landmark, t: int) -> None:
+        lm.nobs += 1
+        lm.last = max(lm.last, t)
+        lm.consecutive = 0
+        self.stats.observations_used += 1
 
     def _whitened_norms(self, world_T_imu: np.ndarray, p: np.ndarray, pix: np.ndarray) -> np.ndarray:
         """(n,) norms of the whitened (uL, uR, v) errors of observations ``pix`` (n, 4) of
@@ -519,6 +536,10 @@ class SmootherFilter:
         and marginals) and return the whole map."""
         tic = time.perf_counter()
         healthy = self.failed is None
+        t_last, unchecked, _ = self._unchecked
+        for a in unchecked:  # the last frame's observations: no later update to check them by
+            self._accept(a[0], t_last)
+        self._unchecked = (-1, [], [])
         for k in list(self._pose_stamp):
             if healthy:
                 self._freeze_pose(k)
