@@ -22,7 +22,7 @@ from vislam.tools.evaluation import evaluate  # noqa: E402
 SCENE = dict(facade_density_per_m=0.5)
 NOISY = dict(velocity_noise_mps=0.5, angular_noise_radps=0.05)
 #: The filter's noise model matching the simulator (pixel noise 0.5 px by default).
-MODEL = FilterOptions(velocity_noise_mps=0.5, angular_noise_radps=0.05, pixel_noise_px=0.5)
+MODEL = FilterOptions(velocity_noise_mps=0.5, angular_noise_radps=0.05, pixel_noise_px=0.5, smoother_pixel_noise_px=0.5)
 
 
 def ate(est: np.ndarray, truth: np.ndarray) -> float:
@@ -31,7 +31,7 @@ def ate(est: np.ndarray, truth: np.ndarray) -> float:
 
 @pytest.fixture(scope="module")
 def noisy():
-    sim = simulate_drive(SimulationOptions(n_frames=120, seed=3, **SCENE, **NOISY))
+    sim = simulate_drive(SimulationOptions(n_frames=100, seed=3, **SCENE, **NOISY))
     return sim, estimators.run(sim.sequence, "smoother", MODEL)
 
 
@@ -136,7 +136,7 @@ def with_stalls(seq, period: int = 10, first: int = 5):
 
 
 def test_remapping_stalled_tracks_beats_skipping():
-    sim = simulate_drive(SimulationOptions(n_frames=100, seed=5, **SCENE, **NOISY))
+    sim = simulate_drive(SimulationOptions(n_frames=80, seed=5, **SCENE, **NOISY))
     stalled = with_stalls(sim.sequence)
     assert stalled.observations.repeated_mask().sum() > 100  # the emulation made repeats
     opts = MODEL.replace(smoother_pose_covariance=False)
@@ -174,7 +174,7 @@ def test_cli_run_smoother_with_refine(tmp_path):
     from vislam.tools.dataset_io import save_sequence
     from vislam.tools.trajectory_io import read_tum
 
-    sim = simulate_drive(SimulationOptions(n_frames=50, seed=4, **SCENE, **NOISY))
+    sim = simulate_drive(SimulationOptions(n_frames=40, seed=4, **SCENE, **NOISY))
     data = tmp_path / "drive.npz"
     save_sequence(sim.sequence, data)
     out = tmp_path / "out"

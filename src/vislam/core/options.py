@@ -181,9 +181,10 @@ class FilterOptions:
     #: max_consecutive_gated times in a row is rejected. 0 disables the check.
     smoother_outlier_sigma: float = 6.0
     #: Compute the marginal covariance of the newest pose every frame (the result's
-    #: pose_covariance; GTSAM's marginal of the newest pose costs about as much as the
-    #: update itself). False: no pose covariance (None), faster.
-    smoother_pose_covariance: bool = True
+    #: pose_covariance, EKF convention). Off by default: GTSAM's marginal of the newest
+    #: pose costs as much as the update itself (dense 0027: 72 s of marginals against
+    #: 64 s of updates), which breaks real time; without it pose_covariance is None.
+    smoother_pose_covariance: bool = False
 
     # --- batch refinement (mode "smoother" with refine) ----------------------------------
     #: After the smoother, a batch Levenberg-Marquardt pass over the whole drive from the

@@ -183,7 +183,7 @@ class SmootherFilter:
         self._stereo_factors: list = []  # GenericStereoFactor3D (base noise, no kernel)
         self._stereo_removed: set[int] = set()
         self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
-        self._unchecked: tuple = (-1, [], [])  # (frame, observations, factor indices) not yet checked
+        self._unchecked: tuple = (-1, [])  # (frame, observations, factor indices) not yet checked
         self.timings = {"marginals_s": 0.0, "update_s": 0.0}
 
     # --- read access ----------------------------------------------------------------
@@ -315,6 +315,9 @@ class SmootherFilter:
         self._rejected_ids &= set(ids_seen.tolist())
 
         new_ids, new_z, new_frame = [], [], []
+        # per stereo factor [frame of its pose, index in _stereo_factors, position in `graph`
+        # (after the update: the smoother's factor index; -1 once removed)]
+        entries = []
         added = []  # (landmark, frame of the pose, pixels) of the stereo factors added
         for i in np.flatnonzero(~rep):
             lm_id = int(ids_seen[i])
@@ -333,8 +336,10 @@ class SmootherFilter:
             lm = self._landmarks[key]
             lm.stamp = now
             stamps[self._L(key)] = now
-            added.append((lm, k, z[i], len(self._stereo_factors)))
-            lm.obs.append((k, len(self._stereo_factors)))
+            entry = [k, len(self._stereo_factors), graph.size()]
+            lm.obs.append(entry)
+            entries.append(entry)
+            added.append((lm, k, z[i], entry))
             graph.add(self._stereo(z[i], k, key))
 
         if new_ids:
@@ -357,7 +362,9 @@ class SmootherFilter:
                     prior = g.PriorFactorPoint3(L, p, self._lm_prior)
                     self._prior_factors.append(prior)
                     graph.add(prior)
-                    lm.obs.append((int(k), len(self._stereo_factors)))
+                    entry = [int(k), len(self._stereo_factors), graph.size()]
+                    lm.obs.append(entry)
+                    entries.append(entry)
                     graph.add(self._stereo(new_z[j], int(k), key))
                     self.stats.landmarks_initialized += 1
                     self.stats.observations_used += 1
@@ -380,9 +387,11 @@ class SmootherFilter:
         if len(factor_index) != n_new:  # pragma: no cover - gtsam contract
             raise EstimationError(f"gtsam returned {len(factor_index)} factor indices for {n_new} factors", frame=t)
         # graph order: the pose factor, the stereo factors of `added`, then (prior, stereo) per new landmark
+        for entry in entries:
+            entry[2] = int(factor_index[entry[2]])
         # check the previous frame's observations (their poses and landmarks have had two
         # updates now); those that fail are removed with the next update
-        previous, self._unchecked = self._unchecked, (t, added, factor_index[1:1 + len(added)])
+        previous, self._unchecked = self._unchecked, (t, added)
         self._check_outliers(*previous)
 
     def _stereo(self, pix: np.ndarray, k: int, key: int):
@@ -393,18 +402,18 @@ class SmootherFilter:
                                                             self._body_P_sensor))
         return f
 
-    def _check_outliers(self, t: int, added: list, factor_index: list) -> None:
+    def _check_outliers(self, t: int, added: list) -> None:
         """Whitened errors of frame t's observations of existing landmarks after the
         update of frame t + 1: those beyond ``smoother_outlier_sigma`` are removed
         (gated) with the next update. (Right after their own update the newest pose has
         had one Gauss-Newton step only: on the simulator, checking then gated good
         observations and doubled the error.)"""
         # observations whose pose or landmark has left the window since are final: used
+        added = [a for a in added if a[3][2] >= 0]  # not removed with a rejected landmark
         live = [a[1] in self._pose_stamp and a[0].key in self._landmarks for a in added]
         for a, ok in zip(added, live):
             if not ok:
                 self._accept(a[0], t)
-        factor_index = [f for f, ok in zip(factor_index, live) if ok]
         added = [a for a, ok in zip(added, live) if ok]
         if not added:
             return
@@ -420,23 +429,35 @@ class SmootherFilter:
         limit = opts.smoother_outlier_sigma if opts.smoother_outlier_sigma > 0 else np.inf
         bad = err > limit
         remove = []
-        for j, (lm, k, pix, stereo_index) in enumerate(added):
+        for j, (lm, k, pix, entry) in enumerate(added):
+            if entry[2] < 0:  # removed meanwhile with its landmark
+                continue
             if bad[j]:
                 lm.ngated += 1
                 lm.consecutive += 1
                 self.stats.observations_gated += 1
-                remove.append(int(factor_index[j]))
-                self._stereo_removed.add(stereo_index)
-                lm.obs.remove((k, stereo_index))
+                self._remove_factors(lm, [entry], remove)
                 if opts.max_consecutive_gated and lm.consecutive >= opts.max_consecutive_gated and not lm.rejected:
+                    # rejected: every factor of it still in the window goes (its prior stays)
                     lm.rejected = True
                     self.stats.landmarks_rejected += 1
+                    self._remove_factors(lm, list(lm.obs), remove)
                     if self._tracks.get(lm.id) == lm.key:
                         del self._tracks[lm.id]
                         self._rejected_ids.add(lm.id)
             else:
                 self._accept(lm, t)
         self._to_remove = remove  # with the next update (the landmark stays in the window until then)
+
+    def _remove_factors(self, lm: _Landmark, entries: list, remove: list) -> None:
+        """Schedule the removal of stereo factors of ``lm`` (those whose pose is still in
+        the window; the others were marginalized) and leave them out of refine."""
+        for entry in entries:
+            if entry[2] >= 0 and entry[0] in self._pose_stamp:
+                remove.append(entry[2])
+                self._stereo_removed.add(entry[1])
+                entry[2] = -1
+        lm.obs = [e for e in lm.obs if e[2] >= 0 or e[0] not in self._pose_stamp]
 
     def _accept(self, lm: _Landmark, t: int) -> None:
         lm.nobs += 1
@@ -491,7 +512,7 @@ class SmootherFilter:
         owner = np.array([j for j, lm in enumerate(lms) for _ in lm.obs], dtype=np.int64)
         if owner.size == 0:
             return np.linalg.inv(info)
-        frames = np.array([k for lm in lms for k, _ in lm.obs], dtype=np.int64)
+        frames = np.array([e[0] for lm in lms for e in lm.obs], dtype=np.int64)
         uniq, inv = np.unique(frames, return_inverse=True)
         cam_T_world = self.model.cam_T_imu @ se3_inverse(np.array([self._pose_estimate(int(k)) for k in uniq]))
         R = cam_T_world[inv, :3, :3]
@@ -536,10 +557,11 @@ class SmootherFilter:
         and marginals) and return the whole map."""
         tic = time.perf_counter()
         healthy = self.failed is None
-        t_last, unchecked, _ = self._unchecked
+        t_last, unchecked = self._unchecked
         for a in unchecked:  # the last frame's observations: no later update to check them by
-            self._accept(a[0], t_last)
-        self._unchecked = (-1, [], [])
+            if a[3][2] >= 0:
+                self._accept(a[0], t_last)
+        self._unchecked = (-1, [])
         for k in list(self._pose_stamp):
             if healthy:
                 self._freeze_pose(k)
