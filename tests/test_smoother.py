@@ -32,13 +32,13 @@ def ate(est: np.ndarray, truth: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def noisy():
     sim = simulate_drive(SimulationOptions(n_frames=100, seed=3, **SCENE, **NOISY))
-    return sim, estimators.run(sim.sequence, "smoother", MODEL)
+    return sim, estimators.run(sim.sequence, "smoother", MODEL.replace(smoother_pose_covariance=True))
 
 
 def test_zero_noise_reproduces_the_truth():
     sim = simulate_drive(SimulationOptions(n_frames=60, seed=1, pixel_noise_px=0.0, velocity_noise_mps=0.0,
                                            angular_noise_radps=0.0, **SCENE))
-    r = estimators.run(sim.sequence, "smoother", MODEL.replace(smoother_pose_covariance=False))
+    r = estimators.run(sim.sequence, "smoother", MODEL)
     assert not r.partial and r.world_T_imu.shape == sim.world_T_imu.shape
     for poses in (r.world_T_imu, r.extra["online_world_T_imu"]):
         assert np.abs(poses[:, :3, 3] - sim.world_T_imu[:, :3, 3]).max() < 1e-6  # m
@@ -139,7 +139,7 @@ def test_remapping_stalled_tracks_beats_skipping():
     sim = simulate_drive(SimulationOptions(n_frames=80, seed=5, **SCENE, **NOISY))
     stalled = with_stalls(sim.sequence)
     assert stalled.observations.repeated_mask().sum() > 100  # the emulation made repeats
-    opts = MODEL.replace(smoother_pose_covariance=False)
+    opts = MODEL
     remap = estimators.run(stalled, "smoother", opts)
     skip = estimators.run(stalled, "smoother", opts.replace(stalled_tracks="skip"))
     a_remap, a_skip = ate(remap.world_T_imu, sim.world_T_imu), ate(skip.world_T_imu, sim.world_T_imu)
@@ -149,7 +149,7 @@ def test_remapping_stalled_tracks_beats_skipping():
 
 def test_stepwise_api_and_errors():
     sim = simulate_drive(SimulationOptions(n_frames=12, seed=2, **SCENE))
-    f = SmootherFilter(sim.sequence.calibration, MODEL)
+    f = SmootherFilter(sim.sequence.calibration, MODEL.replace(smoother_pose_covariance=True))
     frames = list(sim.sequence.frames())
     f.update(frames[0].landmark_ids, frames[0].pixels)
     with pytest.raises(ConfigError):  # the odometry of the interval is missing
@@ -157,10 +157,15 @@ def test_stepwise_api_and_errors():
     for frame in frames[1:]:
         fs = f.step(frame)
         assert fs.frame == frame.index and fs.observations == frame.n_observations
-        assert f.pose_covariance.shape == (6, 6)
+        assert f.pose_covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(f.pose_covariance) > 0)
     np.testing.assert_allclose(f.world_T_imu[:3, 3], sim.world_T_imu[-1, :3, 3], atol=0.05)
     lm = f.finish()
     assert len(lm) > 0 and np.all(np.isfinite(lm.covariance))
+    poses, covs = f.final_trajectory()
+    assert poses.shape == (12, 4, 4) and covs.shape == (12, 6, 6) and np.all(np.isfinite(poses))
+    # without the option: no pose covariance
+    r = estimators.run(sim.sequence, "smoother", MODEL)
+    assert r.pose_covariance is None and r.extra["online_pose_covariance"] is None
     with pytest.raises(ConfigError):
         FilterOptions(stalled_tracks="late")
     with pytest.raises(ConfigError):

@@ -178,8 +178,11 @@ class FilterOptions:
     smoother_landmark_prior_m: float = 30.0
     #: An observation whose whitened error (norm, in σ) exceeds this after the update of
     #: its frame is removed from the smoother (counted as gated); a landmark gated
-    #: max_consecutive_gated times in a row is rejected. 0 disables the check.
-    smoother_outlier_sigma: float = 6.0
+    #: max_consecutive_gated times in a row is rejected. 0 disables the check. 4 rather
+    #: than 6: on the simulator with 10 % moving landmarks and 2 % outliers (300 frames,
+    #: seed 0) ATE 0.0031 against 0.0039 m (the clean drive: 0.0021 m); dense 0027
+    #: 2.76 m / 1.46 % against 2.59 m / 1.50 %.
+    smoother_outlier_sigma: float = 4.0
     #: Compute the marginal covariance of the newest pose every frame (the result's
     #: pose_covariance, EKF convention). Off by default: GTSAM's marginal of the newest
     #: pose costs as much as the update itself (dense 0027: 72 s of marginals against
