@@ -45,6 +45,7 @@ FLAG_FIELDS = {
     "gate": ("gating_probability", "--gate"),
     "ekf": ("ekf", "--ekf"),
     "keep_all_landmarks": ("keep_all_landmarks", "--keep-all-landmarks"),
+    "refine": ("refine", "--refine"),
 }
 
 
@@ -60,7 +61,7 @@ def _probability_or_off(text: str):
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "run",
-        help="run IMU localization, landmark mapping or SLAM on a dataset",
+        help="run IMU localization, landmark mapping, SLAM or the sliding-window smoother on a dataset",
         description="Run one of the report's estimators on a dataset (.npz) and write DIR/trajectory.tum, "
         "DIR/trajectory.kitti, DIR/trajectory.png, DIR/summary.json and, for mapping and SLAM, "
         "DIR/landmarks.ply and DIR/landmarks.npz (with --gt also DIR/metrics.json and "
@@ -70,7 +71,11 @@ def register(subparsers) -> None:
     )
     parser.add_argument("data", metavar="DATA", help="dataset file (.npz)")
     parser.add_argument("--mode", choices=MODES, default="slam",
-                        help="localization (IMU only), mapping (landmarks from known poses) or slam (default: slam)")
+                        help="localization (IMU only), mapping (landmarks from known poses), slam (the report's EKF) "
+                        "or smoother (fixed-lag smoother on GTSAM over the same measurements) (default: slam)")
+    parser.add_argument("--refine", action="store_true", default=None,
+                        help="smoother only: a batch Levenberg-Marquardt pass over the whole drive from the smoother's "
+                        "result (the trajectory written is the refined one; the smoother's goes to smoother.tum)")
     parser.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")
     add_filter_arguments(parser)
     add_noise_injection_arguments(parser)
@@ -374,6 +379,8 @@ def run(args) -> int:
     start_time = process_start_time() or _COMMAND_START
     if args.poses and args.mode != "mapping":
         raise ConfigError(f"--poses is only used by --mode mapping (got --mode {args.mode})")
+    if args.refine and args.mode != "smoother":
+        raise ConfigError(f"--refine is only used by --mode smoother (got --mode {args.mode})")
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     data = Path(args.data)
@@ -416,6 +423,8 @@ def run(args) -> int:
             finally:
                 close()
             extra["warnings"] = model_fit_warnings(result)
+            if "timing" in result.extra:  # smoother: its own timings and those of refine
+                extra["timing"] = result.extra["timing"]
             if gt is not None:
                 name = dataset.get("label") or sequence.name
                 extra["evaluation"] = stage_evaluation(stage.staging, evaluate_run(result, gt, sequence),

@@ -60,6 +60,10 @@ def run(sequence: Sequence, mode: str, options: FilterOptions | None = None, pro
             return run_localization(sequence, options, progress, on_frame=on_frame)
         if mode == "mapping":
             return run_mapping(sequence, options, world_T_imu=world_T_imu, progress=progress, on_frame=on_frame)
+        if mode == "smoother":
+            from vislam.core.smoother import run_smoother  # gtsam: imported only when used
+
+            return run_smoother(sequence, options, progress, on_frame=on_frame)
         return run_slam(sequence, options, progress, on_frame=on_frame)
 
 
@@ -157,5 +161,11 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
     result = RunResult(filt.mode, sequence.name, sequence.timestamps_s[:done].copy(), world_T_imu,
                        covs[:done] if has_cov else None, landmarks, filt.options, stats,
                        partial=error is not None, error=error)
+    if hasattr(filt, "final_trajectory"):  # a smoother: its final poses (and marginals) replace the online ones
+        result.extra["online_world_T_imu"] = result.world_T_imu
+        result.extra["online_pose_covariance"] = result.pose_covariance
+        final, final_cov = filt.final_trajectory()
+        result.world_T_imu = final[:done]
+        result.pose_covariance = final_cov[:done] if final_cov is not None else None
     result.frame_stats = {name: a[:done] for name, a in frame_stats.items()}
     return result

@@ -90,11 +90,16 @@ SUMMARY = "summary.json"
 GROUNDTRUTH_TUM = "groundtruth.tum"
 GROUNDTRUTH_KITTI = "groundtruth.kitti"
 LOCALIZATION_TUM = "localization.tum"
+#: Smoother: its online estimates (each pose as estimated at its own frame).
+ONLINE_TUM = "online.tum"
+#: Smoother with refine: the smoother's final trajectory (trajectory.tum is the refined one).
+SMOOTHER_TUM = "smoother.tum"
 #: Files that belong to one mode only; a commit without them removes older copies.
-_MODE_FILES = (LANDMARKS_PLY, LANDMARKS_NPZ)
+_MODE_FILES = (LANDMARKS_PLY, LANDMARKS_NPZ, ONLINE_TUM, SMOOTHER_TUM)
 
 #: Mode names in titles and summaries.
-MODE_TITLES = {"localization": "IMU localization", "mapping": "Landmark mapping", "slam": "Visual-inertial SLAM"}
+MODE_TITLES = {"localization": "IMU localization", "mapping": "Landmark mapping", "slam": "Visual-inertial SLAM",
+               "smoother": "Sliding-window smoother"}
 
 _STAGE_PREFIX = ".vislam-staging-"
 
@@ -403,8 +408,8 @@ def _write_common(stage: OutputStage, result: RunResult, dataset_name: str, curv
                                subtitle=_figure_subtitle(result, subtitle_extra))
 
 
-_COMMIT_ORDER = (TRAJECTORY_TUM, TRAJECTORY_KITTI, LANDMARKS_NPZ, LANDMARKS_PLY, FIGURE, GROUNDTRUTH_TUM,
-                 GROUNDTRUTH_KITTI, LOCALIZATION_TUM, SUMMARY)
+_COMMIT_ORDER = (TRAJECTORY_TUM, TRAJECTORY_KITTI, ONLINE_TUM, SMOOTHER_TUM, LANDMARKS_NPZ, LANDMARKS_PLY, FIGURE,
+                 GROUNDTRUTH_TUM, GROUNDTRUTH_KITTI, LOCALIZATION_TUM, SUMMARY)
 
 
 def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping[str, Any], duration_s: float,
@@ -421,6 +426,17 @@ def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping
     if result.mode == "mapping" and dataset.get("poses") not in (None, "localization"):
         label = "trajectory (given poses)"
     curves = [TrajectoryCurve(result.world_T_imu, label)]
+    # the smoother's other trajectories (online estimates; before refinement)
+    for key, fname, curve_label, color in (("online_world_T_imu", ONLINE_TUM, "online estimate", "tab:orange"),
+                                           ("smoother_world_T_imu", SMOOTHER_TUM, "smoother (before refine)",
+                                            "tab:green")):
+        poses = result.extra.get(key)
+        if poses is not None:
+            write_tum(stage.path(fname), result.timestamps_s, poses)
+            curves.insert(0, TrajectoryCurve(poses, curve_label, color=color, linestyle="--", linewidth=1.2,
+                                             zorder=2, mark_ends=False))
+    if len(curves) > 1:
+        curves[-1] = TrajectoryCurve(result.world_T_imu, "refined" if result.options.refine else "final (smoothed)")
     view = _write_common(stage, result, name, curves, None,
                          [f"vislam landmarks of {name} ({result.mode})"])
     extra = {**(extra or {}), "landmarks_outside_figure": view["landmarks_outside_view"]}

@@ -1,0 +1,662 @@
+"""A sliding-window (fixed-lag) smoother over the EKF's measurements, on GTSAM.
+
+:class:`SmootherFilter` has the stepwise API of :mod:`vislam.core.filters` (``predict``,
+``update``, ``step``, read access, ``finish``), so :func:`vislam.core.estimators.drive`
+runs it like any EKF. Its factor graph, per frame k:
+
+* a pose ``X(k) = world_T_imu[k]`` (GTSAM's Pose3, tangent (ω, v), right perturbation);
+* the motion model ``world_T_imu[k] = world_T_imu[k−1] · exp(τ_k u_k)`` as a
+  ``BetweenFactorPose3`` with covariance ``τ_k² W`` (W reordered to (ω, v)); the first
+  pose has a prior at the identity (the world frame);
+* each stereo observation ``[uL, vL, uR, vR]`` as a ``GenericStereoFactor3D`` on
+  ``StereoPoint2(uL, uR, (vL+vR)/2)`` with σ = ``smoother_pixel_noise_px`` (σ/√2 on the row), the
+  IMU-to-camera transform as ``body_P_sensor`` and a robust kernel
+  (``smoother_kernel``, ``smoother_kernel_scale`` in σ);
+* a new landmark from the EKF's initialization guards and the stereo model's inverse,
+  with a weak prior (``smoother_landmark_prior_m``) around the triangulation — it keeps
+  a landmark determined when its projections lose their Jacobian (behind the camera).
+
+``gtsam.IncrementalFixedLagSmoother`` (iSAM2, one Gauss-Newton step per frame,
+relinearization threshold ``smoother_relinearize_threshold``) keeps the poses of the
+last ``smoother_window_s`` seconds and the landmarks observed in that time and
+marginalizes the rest. What leaves the window is final: each pose's estimate when it
+leaves (:meth:`SmootherFilter.final_trajectory`), each landmark's estimate and 3x3
+covariance into the map (the covariance given the poses: the information of its own
+factors — GTSAM's marginal of a landmark deep in the Bayes tree costs ~50 ms). ``step``
+gives the online estimate of the current pose (read by ``drive`` frame by frame, kept
+as ``result.extra["online_world_T_imu"]``); the result's trajectory is the final one.
+With ``smoother_pose_covariance`` the marginal covariance of the newest pose is computed
+every frame (``pose_covariance``; as costly as the update, so off by default).
+
+Stalled tracks (``stalled_tracks``): at the feature files' re-detection frames the
+continuing tracks repeat their previous pixels, and from then on they are one frame
+late. The repeat is dropped (``RepeatDetector``) and, with "remap", an observation at
+frame k of a track that has stalled L times since it began is attached to pose k − L
+(the stall count is kept per id from the track's first observation, guards or not).
+
+Outliers: besides the kernel, the observations of frame t are checked after the update
+of frame t + 1; those whose whitened error exceeds ``smoother_outlier_sigma`` are
+removed with the next update (gated); a landmark gated ``max_consecutive_gated`` times
+in a row is rejected (no further factors; flagged in the map). An observation whose
+remapped pose has left the window is dropped (counted as gated).
+
+:func:`refine` (``--refine``): batch Levenberg–Marquardt over every factor of the drive
+from the smoother's final estimate, robust (``refine_kernel``), then a second pass
+without the stereo factors whose reprojection error exceeds ``refine_outlier_px``.
+
+Covariances are returned in the EKF's convention: for T = world_T_imu with right
+perturbation ξ = (ω, v), imu_T_world = T⁻¹ has left perturbation −ξ — the same
+covariance with the blocks reordered to (v, ω).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from vislam.core.bookkeeping import MapBuilder, RepeatDetector, sorted_positions
+from vislam.core.filters import FrameStats, _check_dt, _History, _observations, _StatsDelta, _twist
+from vislam.core.lie import se3_inverse
+from vislam.core.options import FilterOptions
+from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
+from vislam.core.sequence import Calibration, Frame
+from vislam.core.updaters import StereoModel, initialization_guard, mapping_initialize
+from vislam.errors import ConfigError, EstimationError
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["SmootherFilter", "run_smoother", "refine", "to_ekf_covariance"]
+
+#: (v, ω) <-> (ω, v): the same permutation both ways.
+_PERM = np.array([3, 4, 5, 0, 1, 2])
+
+
+def to_ekf_covariance(cov_gtsam: np.ndarray) -> np.ndarray:
+    """GTSAM Pose3 marginal (right perturbation of world_T_imu, (ω, v)) -> the EKF's
+    (left perturbation of imu_T_world, (v, ω)): the sign flip leaves Σ unchanged, the
+    blocks swap."""
+    cov = np.asarray(cov_gtsam, dtype=np.float64)
+    return cov[np.ix_(_PERM, _PERM)]
+
+
+def _gtsam():
+    try:
+        import gtsam
+    except ImportError as exc:  # pragma: no cover - gtsam is a dependency
+        raise ConfigError("mode smoother needs the gtsam package (pip install gtsam)") from exc
+    return gtsam
+
+
+def _rigid(T: np.ndarray) -> np.ndarray:
+    """T with its rotation projected onto SO(3) (recorded transforms are rigid to ~1e-7)."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = R
+    out[3] = (0, 0, 0, 1)
+    return out
+
+
+def _kernel(gtsam, name: str, scale: float, base):
+    if name == "none":
+        return base
+    est = gtsam.noiseModel.mEstimator
+    m = est.Cauchy.Create(scale) if name == "cauchy" else est.Huber.Create(scale)
+    return gtsam.noiseModel.Robust.Create(m, base)
+
+
+class _Landmark:
+    """A landmark in the smoother (its track may have ended: it stays until marginalized)."""
+
+    __slots__ = ("key", "id", "nobs", "ngated", "first", "last", "consecutive", "rejected", "stamp", "obs")
+
+    def __init__(self, key: int, lm_id: int, t: int, stamp: float):
+        self.key, self.id = key, lm_id
+        self.obs: list = []  # (frame of the pose, pixels) of the observations kept
+        self.nobs, self.ngated, self.first, self.last = 1, 0, t, t
+        self.consecutive, self.rejected, self.stamp = 0, False, stamp
+
+
+class SmootherFilter(_History):
+    """Fixed-lag smoother with the stepwise API of the EKFs (see the module docstring).
+
+    ``calibration``: ``sequence.calibration`` (camera and cam_T_imu); ``options``: a
+    :class:`FilterOptions` (motion and pixel noise, guards, ``stalled_tracks``,
+    ``smoother_*``, ``refine_*``).
+    """
+
+    mode = "smoother"
+
+    def __init__(self, calibration: Calibration, options: FilterOptions | None = None):
+        gtsam = self._g = _gtsam()
+        self.calibration = calibration
+        self.options = opts = options or FilterOptions()
+        cam = calibration.camera
+        self.model = StereoModel(cam, calibration.cam_T_imu)
+        self._V = opts.V
+        self._K = gtsam.Cal3_S2Stereo(cam.fsu, cam.fsv, 0.0, cam.cu, cam.cv, cam.baseline_m)
+        self._body_P_sensor = gtsam.Pose3(_rigid(self.model.imu_T_cam))
+        s = opts.pixel_noise_px if opts.smoother_pixel_noise_px is None else opts.smoother_pixel_noise_px
+        self._sigmas = np.array([s, s, s / np.sqrt(2.0)])
+        base = gtsam.noiseModel.Diagonal.Sigmas(self._sigmas)
+        self._stereo_noise = _kernel(gtsam, opts.smoother_kernel, opts.smoother_kernel_scale, base)
+        self._stereo_base = base
+        self._lm_prior = gtsam.noiseModel.Isotropic.Sigma(3, opts.smoother_landmark_prior_m)
+        W = opts.W
+        self._W_gtsam = W[np.ix_(_PERM, _PERM)]
+        sp = max(opts.initial_position_std_m, 1e-6)
+        sr = max(opts.initial_rotation_std_rad, 1e-6)
+        self._pose_prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, sp, sp, sp]))
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(opts.smoother_relinearize_threshold)
+        params.relinearizeSkip = 1
+        self._window = float(opts.smoother_window_s)
+        self._smoother = gtsam.IncrementalFixedLagSmoother(self._window, params)
+        self._remap = opts.stalled_tracks == "remap"
+
+        self.stats = RunStats()
+        self._delta = _StatsDelta(self.stats)
+        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats)
+        self._builder = MapBuilder()
+        self.frame_index = -1
+        self.last_frame_stats = FrameStats(frame=-1)
+        self.failed: str | None = None
+        self._time = 0.0  # seconds since the first frame
+        self._pending_odometry = None  # (τ, u) of the next frame
+        # window contents
+        self._pose_stamp: dict[int, float] = {}  # frame -> timestamp, poses in the window
+        self._pose_value: dict[int, np.ndarray] = {}  # frame -> world_T_imu estimate (latest)
+        self._landmarks: dict[int, _Landmark] = {}  # key -> landmark in the window
+        self._tracks: dict[int, int] = {}  # dataset id -> key of its track in progress
+        self._rejected_ids: set[int] = set()  # ids of rejected tracks still in view
+        self._prev_ids = np.zeros(0, dtype=np.int64)  # ids of the previous frame (every observation)
+        self._prev_lag = np.zeros(0, dtype=np.int64)  # their stall counts
+        self._next_key = 0
+        self._current = np.eye(4)
+        self._current_cov = None
+        # final values
+        self._final_pose: dict[int, np.ndarray] = {}
+        self._online_cov: dict[int, np.ndarray] = {}  # marginal of each pose when it was the newest
+        self._final_lm: dict[int, np.ndarray] = {}  # key -> p (for refine)
+        # every factor of the drive, for refine
+        self._odometry_factors: list = []
+        self._prior_factors: list = []
+        self._stereo_factors: list = []  # GenericStereoFactor3D (base noise, no kernel)
+        self._stereo_removed: set[int] = set()
+        self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
+        self._unchecked: tuple = (-1, [])  # (frame, observations, factor indices) not yet checked
+        self.timings = {"marginals_s": 0.0, "update_s": 0.0}
+        self._init_history()
+
+    # --- read access ----------------------------------------------------------------
+    @property
+    def world_T_imu(self) -> np.ndarray:
+        """(4, 4) online estimate of the current IMU pose."""
+        return self._current.copy()
+
+    @property
+    def imu_T_world(self) -> np.ndarray:
+        return se3_inverse(self._current)
+
+    @property
+    def pose_covariance(self) -> np.ndarray | None:
+        """(6, 6) marginal covariance of the current pose (EKF convention: left
+        perturbation of imu_T_world, (v, ω))."""
+        return None if self._current_cov is None else self._current_cov.copy()
+
+    @property
+    def live_landmark_ids(self) -> np.ndarray:
+        """Ids of the landmarks in the window (not rejected)."""
+        ids = [lm.id for lm in self._landmarks.values() if not lm.rejected]
+        return np.array(sorted(ids), dtype=np.int64)
+
+    @property
+    def live_p_lm_in_world(self) -> np.ndarray:
+        lms = sorted((lm for lm in self._landmarks.values() if not lm.rejected), key=lambda lm: lm.id)
+        if not lms:
+            return np.zeros((0, 3))
+        return np.array([self._smoother.calculateEstimatePoint3(self._L(lm.key)) for lm in lms])
+
+    def frozen_map(self) -> LandmarkMap:
+        """The landmarks marginalized so far (a copy)."""
+        return self._builder.snapshot()
+
+    def final_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """After :meth:`finish`: ((T, 4, 4) final world_T_imu of every frame processed —
+        each pose's value when it left the window or at the end — and (T, 6, 6) the
+        marginal covariance of each pose when it was the newest (the online one, EKF
+        convention; the smoothed pose is at least as certain), or None without
+        ``smoother_pose_covariance``)."""
+        n = self.frame_index + 1
+        poses = np.array([self._final_pose.get(k, np.full((4, 4), np.nan)) for k in range(n)]).reshape(n, 4, 4)
+        if not self.options.smoother_pose_covariance:
+            return poses, None
+        covs = np.array([self._online_cov.get(k, np.full((6, 6), np.nan)) for k in range(n)]).reshape(n, 6, 6)
+        return poses, covs
+
+    # --- keys -------------------------------------------------------------------------
+    def _X(self, k: int) -> int:
+        return self._g.symbol("x", k)
+
+    def _L(self, key: int) -> int:
+        return self._g.symbol("l", key)
+
+    # --- the frame --------------------------------------------------------------------
+    def step(self, frame: Frame) -> FrameStats:
+        """:meth:`predict` with the frame's velocity sample (not for the first frame), then :meth:`update`."""
+        if self.frame_index >= 0:
+            self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
+        return self.update(frame.landmark_ids, frame.pixels)
+
+    def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
+        """Odometry of the interval ending at the next frame: the next :meth:`update`
+        adds the pose ``X(k) = X(k−1) · exp(τ u)`` with covariance τ² W."""
+        self._require_healthy()
+        tau = _check_dt(dt_s)
+        self._pending_odometry = (tau, _twist(linear_velocity, angular_velocity))
+
+    def update(self, ids, pixels) -> FrameStats:
+        """Add the frame's pose and observations, update the window, marginalize what
+        leaves it. Raises EstimationError on a numerical failure (the smoother stops)."""
+        self._require_healthy()
+        ids_seen, z = _observations(ids, pixels)
+        if self.frame_index >= 0 and self._pending_odometry is None:
+            raise ConfigError("update: call predict (the odometry of the interval) before each frame but the first")
+        self.frame_index += 1
+        t = self.frame_index
+        self.stats.frames += 1
+        self.stats.observations_total += ids_seen.size
+        self._delta.begin()
+        try:
+            self._frame(t, ids_seen, z)
+        except RuntimeError as exc:  # gtsam: indeterminate system, cheirality, ...
+            self.failed = f"numerical failure at frame {t}: {exc}"
+            raise EstimationError(self.failed, frame=t) from exc
+        self.stats.frames_processed += 1
+        n_live = sum(1 for lm in self._landmarks.values() if not lm.rejected)
+        self.stats.max_state_landmarks = max(self.stats.max_state_landmarks, len(self._landmarks))
+        self.last_frame_stats = self._delta.end(t, ids_seen.size, n_live, 0.0, 0)
+        self._record(self.last_frame_stats)  # the online estimate; drive() swaps in final_trajectory()
+        return self.last_frame_stats
+
+    def _frame(self, t: int, ids_seen: np.ndarray, z: np.ndarray) -> None:
+        g, opts = self._g, self.options
+        graph, values, stamps = g.NonlinearFactorGraph(), g.Values(), {}
+        X = self._X(t)
+        if t == 0:
+            pose = np.eye(4)
+            f = g.PriorFactorPose3(X, g.Pose3(pose), self._pose_prior)
+            self._prior_factors.append(f)
+        else:
+            tau, u = self._pending_odometry
+            xi = np.concatenate([u[3:], u[:3]]) * tau  # (ω, v) τ
+            step = g.Pose3.Expmap(xi)
+            pose = self._current @ step.matrix()
+            cov = tau * tau * self._W_gtsam + 1e-12 * np.eye(6)
+            f = g.BetweenFactorPose3(self._X(t - 1), X, step, g.noiseModel.Gaussian.Covariance(cov))
+            self._odometry_factors.append(f)
+            self._time += tau
+        self._pending_odometry = None
+        graph.add(f)
+        values.insert(X, g.Pose3(pose))
+        now = self._time
+        stamps[X] = now
+        self._pose_stamp[t] = now
+        self._pose_value[t] = pose
+        cutoff = now - self._window
+
+        # observations: repeats, stall counts, tracks
+        rep = self._repeated(t, ids_seen, z)
+        pos, hit = sorted_positions(ids_seen, self._prev_ids)
+        lag = np.where(hit, self._prev_lag[pos] if self._prev_ids.size else 0, 0)
+        if self._remap:
+            lag = lag + rep
+        self._prev_ids, self._prev_lag = ids_seen, lag
+        ended = set(self._tracks) - set(ids_seen.tolist())
+        for i in ended:
+            del self._tracks[i]
+        self._rejected_ids &= set(ids_seen.tolist())
+
+        new_ids, new_z, new_frame = [], [], []
+        # per stereo factor [frame of its pose, index in _stereo_factors, position in `graph`
+        # (after the update: the smoother's factor index; -1 once removed)]
+        entries = []
+        added = []  # (landmark, frame of the pose, pixels) of the stereo factors added
+        for i in np.flatnonzero(~rep):
+            lm_id = int(ids_seen[i])
+            if lm_id in self._rejected_ids:
+                continue
+            k = t - int(lag[i])
+            if k not in self._pose_stamp or self._pose_stamp[k] < cutoff:
+                self.stats.observations_gated += 1  # its pose has left the window
+                continue
+            key = self._tracks.get(lm_id)
+            if key is None:
+                new_ids.append(lm_id)
+                new_z.append(z[i])
+                new_frame.append(k)
+                continue
+            lm = self._landmarks[key]
+            lm.stamp = now
+            stamps[self._L(key)] = now
+            entry = [k, len(self._stereo_factors), graph.size()]
+            lm.obs.append(entry)
+            entries.append(entry)
+            added.append((lm, k, z[i], entry))
+            graph.add(self._stereo(z[i], k, key))
+
+        if new_ids:
+            new_z = np.array(new_z)
+            good = initialization_guard(self.calibration.camera, new_z, opts)
+            self.stats.observations_not_initialized += int((~good).sum())
+            new_frame = np.array(new_frame)
+            for k in np.unique(new_frame[good]):
+                sel = np.flatnonzero(good & (new_frame == k))
+                p_w, _ = mapping_initialize(self.model, se3_inverse(self._pose_value[int(k)]), new_z[sel], self._V)
+                for j, p in zip(sel, p_w):
+                    key = self._next_key
+                    self._next_key += 1
+                    lm = _Landmark(key, new_ids[j], t, now)
+                    self._landmarks[key] = lm
+                    self._tracks[new_ids[j]] = key
+                    L = self._L(key)
+                    values.insert(L, p)
+                    stamps[L] = now
+                    prior = g.PriorFactorPoint3(L, p, self._lm_prior)
+                    self._prior_factors.append(prior)
+                    graph.add(prior)
+                    entry = [int(k), len(self._stereo_factors), graph.size()]
+                    lm.obs.append(entry)
+                    entries.append(entry)
+                    graph.add(self._stereo(new_z[j], int(k), key))
+                    self.stats.landmarks_initialized += 1
+                    self.stats.observations_used += 1
+
+        # what leaves the window in this update: final values and marginals first
+        self._marginalize(cutoff)
+
+        tic = time.perf_counter()
+        remove, self._to_remove = self._to_remove, []
+        self._smoother.update(graph, values, stamps, remove)
+        n_new = graph.size()
+        factor_index = list(self._smoother.getISAM2Result().getNewFactorsIndices())
+        self._current = self._smoother.calculateEstimatePose3(X).matrix()
+        self._pose_value[t] = self._current
+        self.timings["update_s"] += time.perf_counter() - tic
+        if self.options.smoother_pose_covariance:
+            tic = time.perf_counter()
+            self._current_cov = self._online_cov[t] = to_ekf_covariance(self._smoother.marginalCovariance(X))
+            self.timings["marginals_s"] += time.perf_counter() - tic
+        if len(factor_index) != n_new:  # pragma: no cover - gtsam contract
+            raise EstimationError(f"gtsam returned {len(factor_index)} factor indices for {n_new} factors", frame=t)
+        # graph order: the pose factor, the stereo factors of `added`, then (prior, stereo) per new landmark
+        for entry in entries:
+            entry[2] = int(factor_index[entry[2]])
+        # check the previous frame's observations (their poses and landmarks have had two
+        # updates now); those that fail are removed with the next update
+        previous, self._unchecked = self._unchecked, (t, added)
+        self._check_outliers(*previous)
+
+    def _stereo(self, pix: np.ndarray, k: int, key: int):
+        g = self._g
+        meas = g.StereoPoint2(float(pix[0]), float(pix[2]), 0.5 * float(pix[1] + pix[3]))
+        f = g.GenericStereoFactor3D(meas, self._stereo_noise, self._X(k), self._L(key), self._K, self._body_P_sensor)
+        self._stereo_factors.append(g.GenericStereoFactor3D(meas, self._stereo_base, self._X(k), self._L(key), self._K,
+                                                            self._body_P_sensor))
+        return f
+
+    def _check_outliers(self, t: int, added: list) -> None:
+        """Whitened errors of frame t's observations of existing landmarks after the
+        update of frame t + 1: those beyond ``smoother_outlier_sigma`` are removed
+        (gated) with the next update. (Right after their own update the newest pose has
+        had one Gauss-Newton step only: on the simulator, checking then gated good
+        observations and doubled the error.)"""
+        # observations whose pose or landmark has left the window since are final: used
+        added = [a for a in added if a[3][2] >= 0]  # not removed with a rejected landmark
+        live = [a[1] in self._pose_stamp and a[0].key in self._landmarks for a in added]
+        for a, ok in zip(added, live):
+            if not ok:
+                self._accept(a[0], t)
+        added = [a for a, ok in zip(added, live) if ok]
+        if not added:
+            return
+        opts = self.options
+        n_added = len(added)
+        frames = np.array([a[1] for a in added], dtype=np.int64)
+        uniq, inv = np.unique(frames, return_inverse=True)
+        for k in uniq.tolist():
+            self._pose_value[k] = self._smoother.calculateEstimatePose3(self._X(k)).matrix()
+        poses = np.array([self._pose_value[k] for k in uniq.tolist()])
+        p = np.array([self._smoother.calculateEstimatePoint3(self._L(a[0].key)) for a in added]).reshape(n_added, 3)
+        err = self._whitened_norms(poses[inv], p, np.array([a[2] for a in added]))
+        limit = opts.smoother_outlier_sigma if opts.smoother_outlier_sigma > 0 else np.inf
+        bad = err > limit
+        remove = []
+        for j, (lm, k, pix, entry) in enumerate(added):
+            if entry[2] < 0:  # removed meanwhile with its landmark
+                continue
+            if bad[j]:
+                lm.ngated += 1
+                lm.consecutive += 1
+                self.stats.observations_gated += 1
+                self._remove_factors(lm, [entry], remove)
+                if opts.max_consecutive_gated and lm.consecutive >= opts.max_consecutive_gated and not lm.rejected:
+                    # rejected: no further factors. Its earlier factors stay (under the
+                    # kernel): removing them too took dense 0027 from 2.6 to 4.7 m ATE.
+                    lm.rejected = True
+                    self.stats.landmarks_rejected += 1
+                    if self._tracks.get(lm.id) == lm.key:
+                        del self._tracks[lm.id]
+                        self._rejected_ids.add(lm.id)
+            else:
+                self._accept(lm, t)
+        self._to_remove = remove  # with the next update (the landmark stays in the window until then)
+
+    def _remove_factors(self, lm: _Landmark, entries: list, remove: list) -> None:
+        """Schedule the removal of stereo factors of ``lm`` (those whose pose is still in
+        the window; the others were marginalized) and leave them out of refine."""
+        for entry in entries:
+            if entry[2] >= 0 and entry[0] in self._pose_stamp:
+                remove.append(entry[2])
+                self._stereo_removed.add(entry[1])
+                entry[2] = -1
+        lm.obs = [e for e in lm.obs if e[2] >= 0 or e[0] not in self._pose_stamp]
+
+    def _accept(self, lm: _Landmark, t: int) -> None:
+        lm.nobs += 1
+        lm.last = max(lm.last, t)
+        lm.consecutive = 0
+        self.stats.observations_used += 1
+
+    def _whitened_norms(self, world_T_imu: np.ndarray, p: np.ndarray, pix: np.ndarray) -> np.ndarray:
+        """(n,) norms of the whitened (uL, uR, v) errors of observations ``pix`` (n, 4) of
+        landmarks ``p`` (n, 3) from poses (n, 4, 4); inf behind the camera."""
+        cam_T_world = self.model.cam_T_imu @ se3_inverse(world_T_imu)
+        q = np.einsum("kij,kj->ki", cam_T_world[:, :3, :3], p) + cam_T_world[:, :3, 3]
+        cam = self.calibration.camera
+        front = q[:, 2] > 1e-6
+        z = np.where(front, q[:, 2], 1.0)
+        pred = np.stack([cam.fsu * q[:, 0] / z + cam.cu, cam.fsu * (q[:, 0] - cam.baseline_m) / z + cam.cu,
+                         cam.fsv * q[:, 1] / z + cam.cv], axis=1)
+        meas = np.stack([pix[:, 0], pix[:, 2], 0.5 * (pix[:, 1] + pix[:, 3])], axis=1)
+        r = (pred - meas) / self._sigmas
+        return np.where(front, np.sqrt(np.einsum("ki,ki->k", r, r)), np.inf)
+
+    def _marginalize(self, cutoff: float) -> None:
+        """Freeze the poses and landmarks whose timestamp is before ``cutoff`` (they leave
+        the window in the coming update: GTSAM marginalizes keys with stamp < now − lag)."""
+        tic = time.perf_counter()
+        for k in [k for k, s in self._pose_stamp.items() if s < cutoff]:
+            self._freeze_pose(k)
+        gone = [lm for lm in self._landmarks.values() if lm.stamp < cutoff]
+        self._freeze_landmarks(gone)
+        self.timings["marginals_s"] += time.perf_counter() - tic
+
+    def _freeze_pose(self, k: int) -> None:
+        """Pose k leaves the window: its current estimate is final (its covariance is
+        the marginal computed when it was the newest pose)."""
+        self._final_pose[k] = self._smoother.calculateEstimatePose3(self._X(k)).matrix()
+        del self._pose_stamp[k]
+        self._pose_value.pop(k, None)
+
+    def _pose_estimate(self, k: int) -> np.ndarray:
+        pose = self._final_pose.get(k)
+        return self._pose_value[k] if pose is None else pose
+
+    def _landmark_covariances(self, lms: list, p: np.ndarray) -> np.ndarray:
+        """(n, 3, 3) covariances of landmarks given the poses of their observations: the
+        inverse of the information of their kept stereo factors (whitened Jacobians of
+        (uL, uR, v) at the estimate) plus their prior. The pose uncertainty is not
+        included (conditional, not marginal: GTSAM's marginals of landmarks deep in the
+        Bayes tree cost ~50 ms each)."""
+        cam = self.calibration.camera
+        n = len(lms)
+        info = np.broadcast_to(np.eye(3) / self.options.smoother_landmark_prior_m**2, (n, 3, 3)).copy()
+        owner = np.array([j for j, lm in enumerate(lms) for _ in lm.obs], dtype=np.int64)
+        if owner.size == 0:
+            return np.linalg.inv(info)
+        frames = np.array([e[0] for lm in lms for e in lm.obs], dtype=np.int64)
+        uniq, inv = np.unique(frames, return_inverse=True)
+        cam_T_world = self.model.cam_T_imu @ se3_inverse(np.array([self._pose_estimate(int(k)) for k in uniq]))
+        R = cam_T_world[inv, :3, :3]
+        q = np.einsum("kij,kj->ki", R, p[owner]) + cam_T_world[inv, :3, 3]
+        ok = q[:, 2] > 1e-6
+        x, y, zc = q[ok, 0], q[ok, 1], q[ok, 2]
+        J = np.zeros((x.size, 3, 3))
+        J[:, 0, 0] = J[:, 1, 0] = cam.fsu / zc
+        J[:, 0, 2] = -cam.fsu * x / zc**2
+        J[:, 1, 2] = -cam.fsu * (x - cam.baseline_m) / zc**2
+        J[:, 2, 1] = cam.fsv / zc
+        J[:, 2, 2] = -cam.fsv * y / zc**2
+        J = (J @ R[ok]) / self._sigmas[None, :, None]
+        np.add.at(info, owner[ok], np.swapaxes(J, 1, 2) @ J)
+        return np.linalg.inv(info)
+
+    def _freeze_landmarks(self, lms) -> None:
+        if not lms:
+            return
+        n = len(lms)
+        p = np.array([self._smoother.calculateEstimatePoint3(self._L(lm.key)) for lm in lms]).reshape(n, 3)
+        cov = self._landmark_covariances(lms, p)
+        for j, lm in enumerate(lms):
+            self._final_lm[lm.key] = p[j]
+            del self._landmarks[lm.key]
+        ids = np.array([lm.id for lm in lms], dtype=np.int64)
+        status = np.array([LANDMARK_REJECTED if lm.rejected else LANDMARK_OK for lm in lms], dtype=np.uint8)
+        cols = {name: np.array([getattr(lm, name) for lm in lms], dtype=np.int64)
+                for name in ("nobs", "ngated", "first", "last")}
+        for st in (LANDMARK_OK, LANDMARK_REJECTED):
+            m = status == st
+            if np.any(m):
+                self._builder.add(ids[m], p[m], cov[m], cols["nobs"][m], cols["ngated"][m], cols["first"][m],
+                                  cols["last"][m], st)
+
+    def _require_healthy(self) -> None:
+        if self.failed is not None:
+            raise EstimationError(f"the smoother stopped earlier ({self.failed}); start a new one")
+
+    def finish(self) -> LandmarkMap:
+        """Freeze every pose and landmark still in the window (their current estimates
+        and marginals) and return the whole map."""
+        tic = time.perf_counter()
+        healthy = self.failed is None
+        t_last, unchecked = self._unchecked
+        for a in unchecked:  # the last frame's observations: no later update to check them by
+            if a[3][2] >= 0:
+                self._accept(a[0], t_last)
+        self._unchecked = (-1, [])
+        for k in list(self._pose_stamp):
+            if healthy:
+                self._freeze_pose(k)
+            else:
+                self._final_pose[k] = self._pose_value.get(k, np.full((4, 4), np.nan))
+                del self._pose_stamp[k]
+        if healthy:
+            self._freeze_landmarks(list(self._landmarks.values()))
+        self.timings["marginals_s"] += time.perf_counter() - tic
+        return self._builder.build()
+
+    # --- refinement -------------------------------------------------------------------
+    def refine(self) -> tuple[np.ndarray, dict]:
+        """Batch Levenberg–Marquardt over every factor of the drive, from the final
+        estimate (after :meth:`finish`): see :func:`refine`. Returns ((T, 4, 4) refined
+        world_T_imu, info)."""
+        return refine(self)
+
+
+def refine(smoother: SmootherFilter) -> tuple[np.ndarray, dict]:
+    """Batch Levenberg–Marquardt over the whole drive, initialized from the smoother's
+    final poses and landmarks: pass 1 with every factor under ``refine_kernel``; pass 2
+    without the stereo factors whose reprojection error after pass 1 exceeds
+    ``refine_outlier_px`` (largest StereoPoint2 coordinate error). Factors removed online
+    (gated) are left out. Returns ((T, 4, 4) world_T_imu, info)."""
+    g, opts = smoother._g, smoother.options
+    poses, _ = smoother.final_trajectory()
+    n = poses.shape[0]
+    if not np.all(np.isfinite(poses)):
+        raise EstimationError("refine: the smoother's trajectory is incomplete")
+    values = g.Values()
+    for k in range(n):
+        values.insert(smoother._X(k), g.Pose3(poses[k]))
+    for key, p in smoother._final_lm.items():
+        values.insert(smoother._L(key), p)
+    base_graph = g.NonlinearFactorGraph()
+    for f in smoother._odometry_factors[: max(n - 1, 0)]:
+        base_graph.add(f)
+    for f in smoother._prior_factors:
+        base_graph.add(f)
+    robust = _kernel(g, opts.refine_kernel, opts.refine_kernel_scale, smoother._stereo_base)
+    stereo = [f for i, f in enumerate(smoother._stereo_factors) if i not in smoother._stereo_removed]
+
+    def solve(factors, initial):
+        graph = g.NonlinearFactorGraph(base_graph)
+        for f in factors:
+            graph.add(f.cloneWithNewNoiseModel(robust) if opts.refine_kernel != "none" else f)
+        params = g.LevenbergMarquardtParams()
+        params.setMaxIterations(opts.refine_max_iterations)
+        try:
+            opt = g.LevenbergMarquardtOptimizer(graph, initial, params)
+            out = opt.optimize()
+        except RuntimeError as exc:
+            raise EstimationError(f"refine: numerical failure: {exc}") from exc
+        return out, opt.iterations()
+
+    tic = time.perf_counter()
+    first, it1 = solve(stereo, values)
+    keep = []
+    for f in stereo:
+        e = np.abs(np.asarray(f.unwhitenedError(first)))
+        keep.append(bool(np.all(e <= opts.refine_outlier_px)))
+    kept = [f for f, k in zip(stereo, keep) if k]
+    second, it2 = solve(kept, first)
+    out = np.array([second.atPose3(smoother._X(k)).matrix() for k in range(n)])
+    info = {"refine_seconds": time.perf_counter() - tic, "refine_iterations": [int(it1), int(it2)],
+            "refine_stereo_factors": len(stereo), "refine_stereo_factors_dropped": len(stereo) - len(kept)}
+    return out, info
+
+
+def run_smoother(sequence, options: FilterOptions | None = None, progress=None, on_frame=None):
+    """The smoother over a whole sequence (``drive``), then, with ``options.refine``, the
+    batch refinement. Result: trajectory = final smoothed (or refined) poses;
+    ``extra["online_world_T_imu"]`` the online estimates; with refine
+    ``extra["smoother_world_T_imu"]`` the smoother's; ``extra["timing"]`` seconds of the
+    smoother (update, marginals) and of refine."""
+    from vislam.core.estimators import drive
+
+    options = options or FilterOptions()
+    filt = SmootherFilter(sequence.calibration, options)
+    result = drive(filt, sequence, progress, on_frame)
+    timing = {"smoother_seconds": float(result.stats.filter_seconds), "smoother_update_seconds": filt.timings["update_s"],
+              "smoother_marginals_seconds": filt.timings["marginals_s"]}
+    if options.refine and not result.partial:
+        refined, info = filt.refine()
+        result.extra["smoother_world_T_imu"] = result.world_T_imu
+        result.world_T_imu = refined
+        timing.update(info)
+    result.extra["timing"] = timing
+    return result

@@ -1,0 +1,199 @@
+"""The sliding-window smoother (vislam.core.smoother) on simulated drives: it reproduces
+a noise-free truth, beats the EKF on a noisy drive, its pose covariances contain the
+error at the expected rate, and remapping stalled tracks beats skipping the repeats."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("gtsam")
+
+from vislam.core import estimators  # noqa: E402
+from vislam.core.lie import se3_inverse  # noqa: E402
+from vislam.core.options import FilterOptions  # noqa: E402
+from vislam.core.sequence import StereoObservations  # noqa: E402
+from vislam.core.simulate import SimulationOptions, simulate_drive  # noqa: E402
+from vislam.core.smoother import SmootherFilter, to_ekf_covariance  # noqa: E402
+from vislam.errors import ConfigError  # noqa: E402
+from vislam.tools.evaluation import evaluate  # noqa: E402
+
+#: A lighter scene than the default (about 50 observations per frame) to keep the file fast.
+SCENE = dict(facade_density_per_m=0.5)
+NOISY = dict(velocity_noise_mps=0.5, angular_noise_radps=0.05)
+#: The filter's noise model matching the simulator (pixel noise 0.5 px by default).
+MODEL = FilterOptions(velocity_noise_mps=0.5, angular_noise_radps=0.05, pixel_noise_px=0.5, smoother_pixel_noise_px=0.5)
+
+
+def ate(est: np.ndarray, truth: np.ndarray) -> float:
+    return float(evaluate(est, truth).ape.rmse)
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    sim = simulate_drive(SimulationOptions(n_frames=100, seed=3, **SCENE, **NOISY))
+    return sim, estimators.run(sim.sequence, "smoother", MODEL.replace(smoother_pose_covariance=True))
+
+
+def test_zero_noise_reproduces_the_truth():
+    sim = simulate_drive(SimulationOptions(n_frames=60, seed=1, pixel_noise_px=0.0, velocity_noise_mps=0.0,
+                                           angular_noise_radps=0.0, **SCENE))
+    r = estimators.run(sim.sequence, "smoother", MODEL)
+    assert not r.partial and r.world_T_imu.shape == sim.world_T_imu.shape
+    for poses in (r.world_T_imu, r.extra["online_world_T_imu"]):
+        assert np.abs(poses[:, :3, 3] - sim.world_T_imu[:, :3, 3]).max() < 1e-6  # m
+        assert np.abs(poses[:, :3, :3] - sim.world_T_imu[:, :3, :3]).max() < 1e-8
+    # the map: every landmark where it is
+    lm = r.landmarks
+    assert len(lm) > 100
+    assert np.abs(lm.p_lm_in_world - sim.p_lm_in_world[lm.ids]).max() < 1e-5
+
+
+def test_noisy_drive_beats_the_ekf(noisy):
+    sim, r = noisy
+    ekf = estimators.run(sim.sequence, "slam", MODEL)
+    dead_reckoning = estimators.run(sim.sequence, "localization", MODEL)
+    a_smoother, a_ekf = ate(r.world_T_imu, sim.world_T_imu), ate(ekf.world_T_imu, sim.world_T_imu)
+    assert a_smoother < a_ekf < ate(dead_reckoning.world_T_imu, sim.world_T_imu)
+    # the final (smoothed) trajectory is no worse than the online one
+    assert a_smoother <= ate(r.extra["online_world_T_imu"], sim.world_T_imu) * 1.05
+    assert r.mode == "smoother" and r.stats.landmarks_initialized > 0 and r.stats.observations_used > 0
+
+
+def test_pose_covariance_contains_the_error(noisy):
+    """Online estimate vs its marginal covariance: the position NEES (3 dof) of each
+    frame. A consistent estimator has mean 3 and 97 % of frames under χ²₃(0.97) = 8.9;
+    frames are correlated, so allow a margin."""
+    sim, r = noisy
+    online, cov = r.extra["online_world_T_imu"], r.extra["online_pose_covariance"]
+    assert cov.shape == (len(online), 6, 6) and np.all(np.isfinite(cov))
+    assert np.allclose(cov, np.swapaxes(cov, 1, 2))
+    # the left perturbation ρ of imu_T_world moves the world position by −R ρ
+    R = online[:, :3, :3]
+    P = R @ cov[:, :3, :3] @ np.swapaxes(R, 1, 2)
+    e = online[:, :3, 3] - sim.world_T_imu[:, :3, 3]
+    e, P = e[1:], P[1:]  # frame 0 is the world frame: no error, (near) zero covariance
+    nees = np.einsum("ki,ki->k", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
+    inside = np.mean(nees < 8.9)
+    assert inside > 0.8, f"only {inside:.0%} of frames inside the 97 % ellipsoid (mean NEES {nees.mean():.1f})"
+    assert 0.5 < nees.mean() < 6.0, f"mean position NEES {nees.mean():.2f}, expected about 3"
+    # the final trajectory carries those covariances
+    np.testing.assert_array_equal(r.pose_covariance, cov)
+
+
+def test_covariance_convention():
+    """GTSAM's (ω, v) right-perturbation marginal of world_T_imu -> the EKF's (v, ω)
+    left perturbation of imu_T_world: sample it and compare."""
+    rng = np.random.default_rng(0)
+    from vislam.core.lie import se3_exp, se3_log
+
+    A = rng.normal(size=(6, 6)) * 0.05
+    cov_g = A @ A.T  # (ω, v)
+    T = se3_exp(np.array([1.0, -2.0, 0.5, 0.3, 0.2, -0.4]))
+    xi = rng.multivariate_normal(np.zeros(6), cov_g, 200)  # right perturbation of world_T_imu, (ω, v)
+    xi_vw = np.concatenate([xi[:, 3:], xi[:, :3]], 1)
+    samples = T @ se3_exp(xi_vw)  # world_T_imu exp(ξ); GTSAM's Pose3.Expmap((ω, v)) is se3_exp((v, ω))
+    # left perturbation δ of imu_T_world: sample⁻¹ = exp(δ) T⁻¹, δ = log(sample⁻¹ T) = −ξ in (v, ω)
+    delta = np.array([se3_log(se3_inverse(s) @ T) for s in samples])
+    np.testing.assert_allclose(delta, -xi_vw, atol=1e-9)
+    # so Cov(δ) is GTSAM's covariance with the blocks reordered
+    P = np.eye(6)[[3, 4, 5, 0, 1, 2]]
+    np.testing.assert_allclose(to_ekf_covariance(cov_g), P @ cov_g @ P.T, atol=1e-15)
+    np.testing.assert_allclose(np.cov(delta.T), to_ekf_covariance(np.cov(xi.T)), atol=1e-12)
+    # and GTSAM's Expmap agrees with vislam's exponential
+    import gtsam
+
+    np.testing.assert_allclose(gtsam.Pose3.Expmap(xi[0]).matrix(), se3_exp(xi_vw[0]), atol=1e-12)
+
+
+def with_stalls(seq, period: int = 10, first: int = 5):
+    """The KITTI feature files' stalled tracks, emulated: at frames first, first+period, …
+    every continuing track repeats its previous pixels, and from then on it is one frame
+    late (each further stall adds a frame)."""
+    obs = seq.observations
+    T = obs.n_frames
+    stall = np.zeros(T, dtype=bool)
+    stall[first::period] = True
+    pixels, lag_prev, history = [], {}, {}
+    for t in range(T):
+        ids, pix = obs.frame(t)
+        out = pix.copy()
+        lag_now = {}
+        for j, i in enumerate(ids.tolist()):
+            if i in lag_prev:
+                lag = lag_prev[i] + int(stall[t])
+            else:
+                lag, history[i] = 0, {}
+            history[i][t] = pix[j]
+            out[j] = history[i][t - lag]
+            lag_now[i] = lag
+        for i in set(lag_prev) - set(lag_now):
+            del history[i]
+        lag_prev = lag_now
+        pixels.append(out)
+    return seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, np.concatenate(pixels),
+                                                       obs.n_landmarks))
+
+
+def test_remapping_stalled_tracks_beats_skipping():
+    sim = simulate_drive(SimulationOptions(n_frames=80, seed=5, **SCENE, **NOISY))
+    stalled = with_stalls(sim.sequence)
+    assert stalled.observations.repeated_mask().sum() > 100  # the emulation made repeats
+    opts = MODEL
+    remap = estimators.run(stalled, "smoother", opts)
+    skip = estimators.run(stalled, "smoother", opts.replace(stalled_tracks="keep"))
+    a_remap, a_skip = ate(remap.world_T_imu, sim.world_T_imu), ate(skip.world_T_imu, sim.world_T_imu)
+    assert remap.stats.observations_repeated == skip.stats.observations_repeated > 100
+    assert a_remap < 0.8 * a_skip, f"remap {a_remap:.3f} m vs skip {a_skip:.3f} m"
+
+
+def test_stepwise_api_and_errors():
+    sim = simulate_drive(SimulationOptions(n_frames=12, seed=2, **SCENE))
+    f = SmootherFilter(sim.sequence.calibration, MODEL.replace(smoother_pose_covariance=True))
+    frames = list(sim.sequence.frames())
+    f.update(frames[0].landmark_ids, frames[0].pixels)
+    with pytest.raises(ConfigError):  # the odometry of the interval is missing
+        f.update(frames[1].landmark_ids, frames[1].pixels)
+    for frame in frames[1:]:
+        fs = f.step(frame)
+        assert fs.frame == frame.index and fs.observations == frame.n_observations
+        assert f.pose_covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(f.pose_covariance) > 0)
+    np.testing.assert_allclose(f.world_T_imu[:3, 3], sim.world_T_imu[-1, :3, 3], atol=0.05)
+    lm = f.finish()
+    assert len(lm) > 0 and np.all(np.isfinite(lm.covariance))
+    poses, covs = f.final_trajectory()
+    assert poses.shape == (12, 4, 4) and covs.shape == (12, 6, 6) and np.all(np.isfinite(poses))
+    # without the option: no pose covariance
+    r = estimators.run(sim.sequence, "smoother", MODEL)
+    assert r.pose_covariance is None and r.extra["online_pose_covariance"] is None
+    with pytest.raises(ConfigError):
+        FilterOptions(stalled_tracks="late")
+    with pytest.raises(ConfigError):
+        FilterOptions(smoother_kernel="tukey")
+
+
+def test_cli_run_smoother_with_refine(tmp_path):
+    import json
+
+    from vislam.cli import main
+    from vislam.tools.dataset_io import save_sequence
+    from vislam.tools.trajectory_io import read_tum
+
+    sim = simulate_drive(SimulationOptions(n_frames=40, seed=4, **SCENE, **NOISY))
+    data = tmp_path / "drive.npz"
+    save_sequence(sim.sequence, data)
+    out = tmp_path / "out"
+    args = ["run", str(data), "--mode", "smoother", "--velocity-noise", "0.5", "--angular-noise", "0.05",
+            "--pixel-noise", "0.5", "--out", str(out), "--quiet"]
+    assert main(args + ["--refine"]) == 0
+    names = {p.name for p in out.iterdir()}
+    assert {"trajectory.tum", "trajectory.kitti", "trajectory.png", "summary.json", "landmarks.ply", "landmarks.npz",
+            "online.tum", "smoother.tum"} <= names
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["mode"] == "smoother" and summary["options"]["refine"] is True
+    assert summary["timing"]["refine_seconds"] > 0 and summary["timing"]["smoother_seconds"] > 0
+    _, refined = read_tum(out / "trajectory.tum")
+    _, smoothed = read_tum(out / "smoother.tum")
+    # the batch pass over the whole drive: at least as close to the truth as the smoother (small tolerance)
+    assert ate(refined, sim.world_T_imu) <= 1.05 * ate(smoothed, sim.world_T_imu)
+    assert main(["run", str(data), "--mode", "slam", "--refine", "--out", str(tmp_path / "x"), "--quiet"]) != 0
