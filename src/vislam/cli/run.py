@@ -102,19 +102,22 @@ def add_rerun_arguments(parser) -> None:
 
 
 def record_frame(recorder, sequence):
-    """The ``on_frame`` callback that records each frame of a stepwise filter live
-    (pose, covariance, the landmarks in the state now, those frozen in this frame, the
-    frame's statistics), or None without a recorder."""
+    """The ``on_frame`` callback that records, live, each frame a stepwise filter
+    finishes: its pose and covariance, the landmarks in the state now, those frozen in
+    the step, the frame's statistics (or None without a recorder)."""
     if recorder is None:
         return None
     timestamps = sequence.timestamps_s
+    from vislam.core.lie import se3_inverse
 
-    def on_frame(f) -> None:
-        t = f.frame_index
-        stats = f.last_frame_stats.to_dict()
-        stats.pop("frame", None)
-        recorder.log_frame(t, float(timestamps[t]), f.world_T_imu, f.pose_covariance, f.live_landmark_ids,
-                           f.live_p_lm_in_world, *f.last_frozen, stats=stats)
+    def on_frame(f, processed) -> None:
+        for i, (t, imu_T_world, cov, fs) in enumerate(processed):
+            last = i == len(processed) - 1
+            stats = fs.to_dict()
+            stats.pop("frame", None)
+            frozen = f.last_frozen if last else (None, None, None)
+            recorder.log_frame(t, float(timestamps[t]), se3_inverse(imu_T_world), cov, f.live_landmark_ids,
+                               f.live_p_lm_in_world, *frozen, stats=stats)
 
     return on_frame
 

@@ -8,7 +8,9 @@ filters of :mod:`vislam.core.filters`, so the online and the offline path are on
 
 Each returns a :class:`vislam.core.results.RunResult`. ``progress`` (optional) is called
 with the number of frames done, for a progress bar; ``on_frame`` (optional) with the
-filter after each frame (e.g. to record a 3D view); the library prints nothing. A
+filter and the frames it finished in that step — ``[(t, imu_T_world, pose_covariance,
+FrameStats), ...]``, usually the frame just stepped, later ones with the stalled-track
+remap — e.g. to record a 3D view; the library prints nothing. A
 numerical failure of the filter stops the loop: the result is then *partial*, with the
 frames done so far and ``error`` saying why.
 """
@@ -107,10 +109,11 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
     error = None
     done = 0
 
-    def collect() -> None:
+    def collect() -> list:
         """Store the frames the filter has finished (usually the one just stepped)."""
         nonlocal done, has_cov
-        for t, pose, cov, fs in filt.pop_processed():
+        processed = filt.pop_processed()
+        for t, pose, cov, fs in processed:
             imu_T_world[t] = pose
             if cov is None:
                 has_cov = False
@@ -119,10 +122,12 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
             for name in FRAME_STAT_FIELDS:
                 frame_stats[name][t] = getattr(fs, name)
             done = t + 1
+        return processed
 
     for frame in sequence.frames():
         t = frame.index
         tic = time.perf_counter()
+        processed = []
         try:
             if poses is None:
                 filt.step(frame)
@@ -133,9 +138,9 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
             break
         finally:
             frame_seconds[t] = time.perf_counter() - tic
-            collect()
+            processed = collect()
         if on_frame is not None:
-            on_frame(filt)
+            on_frame(filt, processed)
         if progress:
             progress(t + 1)
     if error is None and hasattr(filt, "drain"):  # frames a delayed filter still holds
@@ -145,7 +150,9 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
         except EstimationError as exc:
             error = str(exc)
         frame_seconds[sequence.n_frames - 1] += time.perf_counter() - tic
-        collect()
+        processed = collect()
+        if on_frame is not None and processed:
+            on_frame(filt, processed)
     if error is not None:
         logger.info("%s; stopping with a partial result", error)  # reported by the caller (result.error)
     landmarks = filt.finish()

@@ -17,6 +17,8 @@ window) and saved atomically (:func:`vislam.tools.atomic.atomic_path`).
 
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence as Seq
@@ -119,7 +121,11 @@ def _fit_equal_aspect(fig, ax, limits) -> tuple[tuple[float, float], tuple[float
     x0, x1, y0, y1 = limits
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
-    fig.tight_layout()
+    with warnings.catch_warnings():
+        # with the side view and a legend below the map, matplotlib may say it cannot
+        # make every decoration fit exactly; the layout it does apply is the one wanted
+        warnings.simplefilter("ignore", UserWarning)
+        fig.tight_layout()
     box = ax.get_position()
     fig_w, fig_h = fig.get_size_inches()
     box_ratio = (box.width * fig_w) / (box.height * fig_h)
