@@ -12,7 +12,20 @@ import contextlib
 import signal
 import sys
 
-__all__ = ["register", "run", "add_engine_arguments", "terminate_as_interrupt"]
+__all__ = ["register", "run", "add_engine_arguments", "terminate_as_interrupt", "configure_dask_logging"]
+
+
+def configure_dask_logging(verbosity: int) -> None:
+    """Dask's own log output: errors only by default, warnings with -v, everything with
+    -vv (Dask logs every worker start and stop at INFO). Set through the environment so
+    that the local cluster's worker processes inherit it."""
+    import logging
+    import os
+
+    level = "error" if verbosity <= 0 else "warning" if verbosity == 1 else "info"
+    os.environ["DASK_LOGGING__DISTRIBUTED"] = level
+    if "distributed" in sys.modules:  # already imported: its logger is configured
+        logging.getLogger("distributed").setLevel(level.upper())
 
 
 def add_engine_arguments(parser, sequential_help: str | None = None) -> None:
@@ -91,8 +104,8 @@ def run(args) -> int:
         if bar is not None:
             bar.update(1)
             if row["status"] == "error":
-                bar.write(f"vislam sweep: {'/'.join(str(row[k]) for k in ('dataset', 'mode', 'options', 'noise', 'seed'))}"
-                          f": error: {row['error']}", file=sys.stderr)
+                key = "/".join(str(row[k]) for k in ("dataset", "mode", "options", "noise", "seed"))
+                bar.write(f"vislam sweep: {key}: error: {row['error']}", file=sys.stderr)
         elif not quiet:
             ate = row.get("ate_m")
             what = row["error"] if row["status"] == "error" else (f"ATE {float(ate):.3f} m" if ate not in (None, "")
@@ -105,6 +118,7 @@ def run(args) -> int:
 
         raise ConfigError("--sequential and --scheduler exclude each other")
     workers = 0 if args.sequential else args.workers
+    configure_dask_logging(args.verbose)
     try:
         with terminate_as_interrupt(), open_engine(args.scheduler, workers) as engine:
             say(f"engine: {engine.name}")

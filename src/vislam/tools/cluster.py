@@ -42,7 +42,7 @@ import logging
 import os
 from typing import Any, Callable, Iterable, Iterator
 
-from vislam.errors import ConfigError
+from vislam.errors import ClusterError, ConfigError
 
 __all__ = ["SequentialEngine", "DaskEngine", "open_engine", "single_thread", "WORKER_ENV",
            "DEFAULT_WORKERS", "CONNECT_TIMEOUT_S"]
@@ -64,6 +64,13 @@ def single_thread(fn: Callable, *args, **kwargs):
 
     with threadpool_limits(limits=1, user_api="blas"):
         return fn(*args, **kwargs)
+
+
+def _task(fn: Callable, log_level: int, *args, **kwargs):
+    """How a task runs on a worker: single-threaded BLAS, and vislam's log level of the
+    client (so e.g. ``--quiet`` also silences the warnings of runs on the workers)."""
+    logging.getLogger("vislam").setLevel(log_level)
+    return single_thread(fn, *args, **kwargs)
 
 
 class _Lazy:
@@ -126,7 +133,8 @@ class DaskEngine:
             return 0
 
     def submit(self, fn: Callable, *args, priority: int = 0, **kwargs):
-        return self.client.submit(fn, *args, pure=False, priority=priority, **kwargs)
+        level = logging.getLogger("vislam").getEffectiveLevel()
+        return self.client.submit(_task, fn, level, *args, pure=False, priority=priority, **kwargs)
 
     def as_completed(self, futures):
         from distributed import as_completed
@@ -143,7 +151,7 @@ def open_engine(scheduler: str | None = None, workers: int | None = None) -> Ite
     """The engine of a command (see the module docstring). ``workers`` is the number of
     LocalCluster workers (default :data:`DEFAULT_WORKERS`; 0: run in this process); it
     is ignored with ``scheduler`` (the cluster has its own workers). A scheduler that
-    cannot be reached is a ConfigError."""
+    cannot be reached, or a local cluster that cannot start, is a ClusterError."""
     if workers is not None and workers < 0:
         raise ConfigError(f"--workers must be >= 0, got {workers}")
     if scheduler is None and workers == 0:
@@ -155,7 +163,7 @@ def open_engine(scheduler: str | None = None, workers: int | None = None) -> Ite
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError, ValueError) as exc:
-            raise ConfigError(f"--scheduler {scheduler}: cannot connect to a Dask scheduler there: "
+            raise ClusterError(f"--scheduler {scheduler}: cannot connect to a Dask scheduler there: "
                               f"{' '.join(str(exc).split()) or type(exc).__name__}") from None
         with client:
             engine = DaskEngine(client, f"Dask scheduler {scheduler}")
@@ -168,6 +176,11 @@ def open_engine(scheduler: str | None = None, workers: int | None = None) -> Ite
     try:
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                host="127.0.0.1", env=dict(WORKER_ENV))
+    except (OSError, RuntimeError, TimeoutError) as exc:
+        cause = exc.__cause__ or exc
+        raise ClusterError(f"cannot start a local Dask cluster with {n} worker processes: "
+                           f"{' '.join(str(cause).split()) or type(cause).__name__} (--sequential runs without Dask)"
+                           ) from None
     finally:
         for k, v in saved.items():
             if v is None:
