@@ -184,6 +184,10 @@ def test_cli_sweep_sequential_and_spec_error(data, tmp_path, capsys):
     assert main(["sweep", str(spec), "--out", str(tmp_path / "out"), "--sequential", "--quiet"]) == 0
     rows = read_results(tmp_path / "out" / RESULTS_FILE)
     assert [(r["mode"], r["status"], r["ate_m"]) for r in rows] == [("localization", "ok", "")]  # no ground truth
+    assert run_sweep(load_spec(spec), tmp_path / "out", figure=False).n_run == 0  # done
+    spec.write_text(spec.read_text() + "[options.default]\nvelocity_noise_mps = 0.05\n", encoding="utf-8")
+    edited = run_sweep(load_spec(spec), tmp_path / "out", figure=False)  # same names, new values: run again
+    assert (edited.n_run, edited.rows[0]["options_values"]) == (1, '{"velocity_noise_mps":0.05}')
     capsys.readouterr()
     bad = tmp_path / "bad.yaml"
     bad.write_text("datasets: 3\n", encoding="utf-8")

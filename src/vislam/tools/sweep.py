@@ -36,8 +36,10 @@ when the file is created (atomically), then one row per finished cell, appended 
 flushed (``fsync``) as results arrive (``distributed.as_completed``). Resuming: a rerun
 with the same ``--out`` reads ``results.csv`` and skips every cell whose key (dataset,
 mode, options, noise, seed) already has a row with status ``ok`` or ``partial`` (a filter
-that stops early does so again: a result, not an accident); cells with status ``error``
-are run again (their error may have been transient: a file not yet mounted on a worker, a
+that stops early does so again: a result, not an accident) computed from the same files
+and settings (``dataset_path``, ``groundtruth_path``, ``options_values``,
+``noise_values``: editing an option set in the SPEC reruns its cells); cells with status
+``error`` are run again (their error may have been transient: a file not yet mounted on a worker, a
 worker that died). A truncated last line (a sweep killed mid-write) is dropped. When every
 cell has run, the file is rewritten once, atomically, with one row per cell in grid order
 (the latest row of a cell wins; rows of cells not in this SPEC are kept after them), and
@@ -71,7 +73,7 @@ from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAMES
 
 __all__ = ["SweepSpec", "DatasetEntry", "Cell", "COLUMNS", "KEY_COLUMNS", "RESULTS_FILE", "SUMMARY_FIGURE",
            "SweepResult", "load_spec", "parse_spec", "run_cell", "run_sweep", "read_results", "cell_key",
-           "plot_summary"]
+           "plot_summary", "rows_equal", "spec_summary", "RUN_INFO_COLUMNS", "DONE_STATUSES"]
 
 logger = logging.getLogger(__name__)
 
@@ -99,6 +101,8 @@ COLUMNS = KEY_COLUMNS + (
     "finished_at",            # UTC time the cell finished (ISO 8601)
     "worker",                 # host:pid of the process that ran the cell
     "dataset_path", "groundtruth_path",
+    "options_values",         # the option set's fields (JSON), as given in the SPEC
+    "noise_values",           # the noise setting's fields (JSON), as given in the SPEC
 )
 #: Columns that describe how/where/when a cell ran rather than what it computed.
 RUN_INFO_COLUMNS = ("filter_seconds", "cell_seconds", "finished_at", "worker")
@@ -135,6 +139,15 @@ class Cell:
     @property
     def key(self) -> tuple[str, str, str, str, str]:
         return (self.dataset.name, self.mode, self.options_name, self.noise_name, str(self.seed))
+
+    def settings(self) -> dict[str, str]:
+        """What a row must match besides the key to count as this cell's result."""
+        return {"dataset_path": self.dataset.path, "groundtruth_path": self.dataset.groundtruth or "",
+                "options_values": _json(self.options), "noise_values": _json(self.noise)}
+
+
+def _json(values: Mapping[str, Any]) -> str:
+    return json.dumps(values, sort_keys=True, separators=(",", ":"))
 
 
 @dataclass
@@ -362,7 +375,7 @@ def run_cell(cell: Cell) -> dict[str, Any]:
     t0 = time.perf_counter()
     d = cell.dataset
     row: dict[str, Any] = dict(zip(KEY_COLUMNS, cell.key))
-    row.update(dataset_path=d.path, groundtruth_path=d.groundtruth or "")
+    row.update(cell.settings())
     try:
         with threadpool_limits(limits=1, user_api="blas"):
             row.update(_compute_cell(cell))
@@ -502,6 +515,14 @@ def _compact(path: Path, cells: list[Cell]) -> list[dict[str, str]]:
 # ----------------------------------------------------------------------------- the sweep
 
 
+def _is_done(row: Mapping[str, str] | None, cell: Cell) -> bool:
+    """Whether ``row`` (the latest of the cell's key) is a finished result of ``cell``:
+    a done status and the same files and settings (a set renamed or edited in the SPEC
+    since is run again)."""
+    return (row is not None and row["status"] in DONE_STATUSES
+            and all(row[k] == v for k, v in cell.settings().items()))
+
+
 @dataclass
 class SweepResult:
     """What :func:`run_sweep` did."""
@@ -541,8 +562,8 @@ def run_sweep(spec: SweepSpec, out_dir, engine=None, on_row: Callable[[dict, int
         raise OutputError(f"{out_dir}: cannot create the output directory: {exc.strerror or exc}") from None
     path = out_dir / RESULTS_FILE
     cells = spec.cells()
-    done = {cell_key(r) for r in read_results(path) if r["status"] in DONE_STATUSES}
-    todo = [c for c in cells if c.key not in done]
+    latest = {cell_key(r): r for r in read_results(path)}
+    todo = [c for c in cells if not _is_done(latest.get(c.key), c)]
     n_skipped = len(cells) - len(todo)
     if on_start:
         on_start(len(todo), n_skipped)
@@ -559,9 +580,8 @@ def run_sweep(spec: SweepSpec, out_dir, engine=None, on_row: Callable[[dict, int
             try:
                 row = f.result()
             except Exception as exc:  # the task itself failed (e.g. a worker died): an error row
-                row = {**dict(zip(KEY_COLUMNS, c.key)), "status": "error",
-                       "error": _one_line(f"{type(exc).__name__}: {exc}"), "dataset_path": c.dataset.path,
-                       "groundtruth_path": c.dataset.groundtruth or "",
+                row = {**dict(zip(KEY_COLUMNS, c.key)), **c.settings(), "status": "error",
+                       "error": _one_line(f"{type(exc).__name__}: {exc}"),
                        "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="microseconds")}
             log.append(row)
             if on_row:
@@ -658,10 +678,6 @@ def plot_summary(rows: list[Mapping[str, str]], path, spec: SweepSpec) -> Path |
     return Path(path)
 
 
-def cell_description(cell: Cell) -> str:
-    return "/".join(cell.key)
-
-
 def spec_summary(spec: SweepSpec) -> str:
     return (f"{len(spec.datasets)} dataset(s) x {len(spec.modes)} mode(s) x {len(spec.options)} option set(s) x "
             f"{len(spec.noise)} noise setting(s) x {len(spec.seeds)} seed(s) = {len(spec.cells())} cells")
@@ -684,7 +700,3 @@ def rows_equal(a: Iterable[Mapping[str, str]], b: Iterable[Mapping[str, str]],
                 diffs.append(f"{'/'.join(k)}: {c} {ia[k][c]!r} != {ib[k][c]!r}")
     return diffs
 
-
-def spec_json(spec: SweepSpec) -> str:
-    return json.dumps({"datasets": [d.__dict__ for d in spec.datasets], "modes": spec.modes,
-                       "options": spec.options, "noise": spec.noise, "seeds": spec.seeds}, indent=2)
