@@ -94,8 +94,6 @@ def run(args) -> int:
     configure_dask_logging(args.verbose)
     try:
         with terminate_as_interrupt(), open_engine(args.scheduler, 0 if args.sequential else args.workers) as engine:
-            if not args.quiet:
-                log(f"engine: {engine.name}")
             result = generate_report(args.data, args.out, settings, log=None if args.quiet else log,
                                      start_time=process_start_time() or _COMMAND_START, engine=engine)
     finally:
@@ -103,7 +101,7 @@ def run(args) -> int:
     if not args.quiet:
         try:
             print(f"{result.markdown_path}\n{result.html_path}\n({len(result.rows)} runs, {len(result.figures)} "
-                  f"figures, {result.seconds:.0f} s)", flush=True)
+                  f"figures, {result.seconds:.0f} s on {engine.name})", flush=True)
         except BrokenPipeError:
             pass
     return 0
