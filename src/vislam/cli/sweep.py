@@ -16,13 +16,15 @@ __all__ = ["register", "run", "add_engine_arguments", "terminate_as_interrupt", 
 
 
 def configure_dask_logging(verbosity: int) -> None:
-    """Dask's own log output: errors only by default, warnings with -v, everything with
-    -vv (Dask logs every worker start and stop at INFO). Set through the environment so
-    that the local cluster's worker processes inherit it."""
+    """Dask's own log output: none by default (Dask logs every worker start and stop at
+    INFO, and a worker that loses its scheduler while a local cluster shuts down at ERROR;
+    what matters reaches the command through its tasks' results), errors and warnings
+    with -v, everything with -vv. Set through the environment so that the local
+    cluster's worker processes inherit it."""
     import logging
     import os
 
-    level = "error" if verbosity <= 0 else "warning" if verbosity == 1 else "info"
+    level = "critical" if verbosity <= 0 else "warning" if verbosity == 1 else "info"
     os.environ["DASK_LOGGING__DISTRIBUTED"] = level
     if "distributed" in sys.modules:  # already imported: its logger is configured
         logging.getLogger("distributed").setLevel(level.upper())
