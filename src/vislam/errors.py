@@ -40,3 +40,7 @@ class EstimationError(VislamError):
 
 class OutputError(VislamError):
     """An output directory or file cannot be written."""
+
+
+class ClusterError(VislamError):
+    """The Dask cluster of a batch command cannot be started or reached."""

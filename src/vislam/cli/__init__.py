@@ -24,6 +24,7 @@ COMMAND_MODULES = [
     "vislam.cli.compare",
     "vislam.cli.eval",
     "vislam.cli.report",
+    "vislam.cli.sweep",
     "vislam.cli.info",
     "vislam.cli.check",
     "vislam.cli.simulate",

@@ -1,0 +1,143 @@
+"""``vislam sweep SPEC --out DIR [--scheduler ADDR] [--workers N]``: a grid of runs on Dask.
+
+The SPEC format, the cells, results.csv and resuming are :mod:`vislam.tools.sweep`'s;
+the engine (a LocalCluster by default, any running scheduler with ``--scheduler``) is
+:mod:`vislam.tools.cluster`'s. This module parses, shows a progress bar (tqdm, on a
+terminal) and prints a summary.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+
+__all__ = ["register", "run", "add_engine_arguments", "terminate_as_interrupt", "configure_dask_logging"]
+
+
+def configure_dask_logging(verbosity: int) -> None:
+    """Dask's own log output: none by default (Dask logs every worker start and stop at
+    INFO, and a worker that loses its scheduler while a local cluster shuts down at ERROR;
+    what matters reaches the command through its tasks' results), errors and warnings
+    with -v, everything with -vv. Set through the environment so that the local
+    cluster's worker processes inherit it."""
+    import logging
+    import os
+
+    level = "critical" if verbosity <= 0 else "warning" if verbosity == 1 else "info"
+    os.environ["DASK_LOGGING__DISTRIBUTED"] = level
+    if "distributed" in sys.modules:  # already imported: its logger is configured
+        logging.getLogger("distributed").setLevel(level.upper())
+
+
+def add_engine_arguments(parser, sequential_help: str | None = None) -> None:
+    """``--scheduler``, ``--workers`` (and ``--sequential``) — shared by sweep and report."""
+    group = parser.add_argument_group(
+        "engine", "Runs go to a Dask cluster: by default a local one started (and stopped) by this command; "
+        "--scheduler uses a running one (dask scheduler/dask worker by hand, dask-jobqueue, Kubernetes). Workers "
+        "must import the same vislam and see the data files under the same paths.")
+    group.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                       help="address of a running Dask scheduler (default: start a local cluster)")
+    group.add_argument("--workers", type=int, metavar="N",
+                       help="worker processes of the local cluster, one thread each (default: 2; ignored with "
+                       "--scheduler)")
+    group.add_argument("--sequential", action="store_true",
+                       help=sequential_help or "run everything in this process, one run after the other (no Dask)")
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt():
+    """Treat SIGTERM like Ctrl-C for the block, so a killed command still stops its
+    cluster and leaves its outputs consistent."""
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "sweep",
+        help="run a grid of datasets x modes x option sets x noise x seeds on a Dask cluster",
+        description="Run the grid of a SPEC file (YAML/TOML: datasets with optional ground truth, modes, named "
+        "option sets, named injected-noise settings, seeds), one task per cell, on a Dask cluster, and write "
+        "DIR/results.csv (one row per cell: metrics, landmark counts, timings, status, error) as cells finish, and "
+        "DIR/summary.png. Rerunning with the same --out resumes: cells already done are skipped, cells that "
+        "failed are run again. A failed cell is a row with its error, never the end of the sweep; the exit status is 1 "
+        "when some cell of the grid has status error.",
+    )
+    parser.add_argument("spec", metavar="SPEC", help="sweep specification (.yaml/.yml/.toml)")
+    parser.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")
+    add_engine_arguments(parser)
+    parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from vislam.tools.cluster import open_engine
+    from vislam.tools.sweep import RESULTS_FILE, load_spec, run_sweep, spec_summary
+
+    spec = load_spec(args.spec)
+    quiet = args.quiet
+    bar = None
+
+    def say(text: str) -> None:
+        if not quiet:
+            print(f"vislam sweep: {text}", file=sys.stderr, flush=True)
+
+    def on_start(n_todo: int, n_done: int) -> None:
+        nonlocal bar
+        say(f"{spec_summary(spec)}; {n_done} already in {args.out}/{RESULTS_FILE}, {n_todo} to run")
+        if not quiet and sys.stderr.isatty() and n_todo:
+            from tqdm import tqdm
+
+            bar = tqdm(total=n_todo, desc="cells", unit="cell", file=sys.stderr, dynamic_ncols=True)
+
+    def on_row(row: dict, done: int, total: int) -> None:
+        if bar is not None:
+            bar.update(1)
+            if row["status"] == "error":
+                key = "/".join(str(row[k]) for k in ("dataset", "mode", "options", "noise", "seed"))
+                bar.write(f"vislam sweep: {key}: error: {row['error']}", file=sys.stderr)
+        elif not quiet:
+            ate = row.get("ate_m")
+            what = row["error"] if row["status"] == "error" else (f"ATE {float(ate):.3f} m" if ate not in (None, "")
+                                                                   else "done")
+            say(f"[{done}/{total}] {'/'.join(str(row[k]) for k in ('dataset', 'mode', 'options', 'noise', 'seed'))}: "
+                f"{row['status']}, {what}")
+
+    if args.sequential and args.scheduler:
+        from vislam.errors import ConfigError
+
+        raise ConfigError("--sequential and --scheduler exclude each other")
+    workers = 0 if args.sequential else args.workers
+    configure_dask_logging(args.verbose)
+    try:
+        with terminate_as_interrupt(), open_engine(args.scheduler, workers) as engine:
+            say(f"engine: {engine.name}")
+            result = run_sweep(spec, args.out, engine, on_row=on_row, on_start=on_start)
+    except KeyboardInterrupt:
+        if bar is not None:
+            bar.close()
+        print(f"vislam sweep: interrupted; the finished cells are in {args.out}/{RESULTS_FILE}; rerun the same "
+              f"command to run the others", file=sys.stderr)
+        return 130
+    finally:
+        if bar is not None:
+            bar.close()
+    if not quiet:
+        print(f"{result.results_path}\n" + (f"{result.figure_path}\n" if result.figure_path else "")
+              + f"({result.n_cells} cells: {result.n_run} run now, {result.n_skipped} done before; "
+              f"{result.n_errors} with errors; {result.seconds:.1f} s on {result.engine})", flush=True)
+        for note in result.notes:
+            print(f"vislam sweep: {note}", file=sys.stderr)
+    return 1 if result.n_errors else 0
