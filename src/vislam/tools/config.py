@@ -38,7 +38,7 @@ import yaml
 from vislam.core.options import FilterOptions
 from vislam.errors import ConfigError
 
-__all__ = ["CONFIG_SUFFIXES", "OPTIONAL_FIELDS", "load_options_file", "resolve_options", "load_known_poses",
+__all__ = ["CONFIG_SUFFIXES", "OPTIONAL_FIELDS", "read_config_document", "load_options_file", "resolve_options", "load_known_poses",
            "POSE_TIME_TOLERANCE_S"]
 
 #: File suffix -> format.
@@ -88,39 +88,46 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def load_options_file(path) -> dict[str, Any]:
-    """The mapping of an options file (YAML or TOML, by suffix); not yet validated
-    against FilterOptions (see :func:`resolve_options`). An empty YAML file is ``{}``."""
+def read_config_document(path, what: str = "options file") -> Any:
+    """The parsed document of a YAML or TOML file (by suffix), any type; every problem
+    (suffix, missing file, directory, encoding, syntax) a one-line ConfigError naming
+    the file and ``what`` it should be. An empty YAML file is None."""
     path = Path(path)
     fmt = CONFIG_SUFFIXES.get(path.suffix.lower())
     if fmt is None:
-        raise ConfigError(f"{path}: unsupported options file type {path.suffix or '(no suffix)'!r}; "
+        raise ConfigError(f"{path}: unsupported {what} type {path.suffix or '(no suffix)'!r}; "
                           f"expected {', '.join(CONFIG_SUFFIXES)}")
     if not path.exists():
-        raise ConfigError(f"{path}: no such options file")
+        raise ConfigError(f"{path}: no such {what}")
     if path.is_dir():
-        raise ConfigError(f"{path}: is a directory (options file expected)")
+        raise ConfigError(f"{path}: is a directory ({what} expected)")
     try:
         text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError:
-        raise ConfigError(f"{path}: not a UTF-8 text file ({fmt.upper()} options expected)") from None
+        raise ConfigError(f"{path}: not a UTF-8 text file ({fmt.upper()} {what} expected)") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot be read: {exc.strerror or exc}") from None
     if fmt == "toml":
         try:
-            values = tomllib.loads(text)
+            return tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{path}: invalid TOML: {_one_line(exc)}") from None
-    else:
-        try:
-            values = yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-            problem = getattr(exc, "problem", None) or exc
-            raise ConfigError(f"{path}: invalid YAML{where}: {_one_line(problem)}") from None
-        if values is None:
-            values = {}
+    try:
+        return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or exc
+        raise ConfigError(f"{path}: invalid YAML{where}: {_one_line(problem)}") from None
+
+
+def load_options_file(path) -> dict[str, Any]:
+    """The mapping of an options file (YAML or TOML, by suffix); not yet validated
+    against FilterOptions (see :func:`resolve_options`). An empty YAML file is ``{}``."""
+    path = Path(path)
+    values = read_config_document(path, "options file")
+    if values is None:
+        values = {}
     if not isinstance(values, Mapping):
         raise ConfigError(f"{path}: expected a mapping of option names to values, got {type(values).__name__}")
     bad_keys = [k for k in values if not isinstance(k, str)]

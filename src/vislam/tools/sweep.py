@@ -69,6 +69,7 @@ from typing import Any, Callable, Iterable, Mapping
 from vislam.core.noise import NoiseSpec
 from vislam.core.options import MODES, FilterOptions
 from vislam.errors import ConfigError, OutputError, VislamError
+from vislam.tools.config import _one_line, read_config_document
 from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAMES
 
 __all__ = ["SweepSpec", "DatasetEntry", "Cell", "COLUMNS", "KEY_COLUMNS", "RESULTS_FILE", "SUMMARY_FIGURE",
@@ -176,35 +177,7 @@ def load_spec(path) -> SweepSpec:
 
 
 def _read_spec_file(path: Path) -> Any:
-    import tomllib
-
-    import yaml
-
-    from vislam.tools.config import CONFIG_SUFFIXES, _Loader
-
-    fmt = CONFIG_SUFFIXES.get(path.suffix.lower())
-    if fmt is None:
-        raise ConfigError(f"{path}: unsupported SPEC file type {path.suffix or '(no suffix)'!r}; expected "
-                          f"{', '.join(CONFIG_SUFFIXES)}")
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such SPEC file" + (" (it is a directory)" if path.is_dir() else ""))
-    try:
-        text = path.read_bytes().decode("utf-8")
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path}: not a UTF-8 text file ({fmt.upper()} expected)") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot be read: {exc.strerror or exc}") from None
-    if fmt == "toml":
-        try:
-            return tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path}: invalid TOML: {_one_line(exc)}") from None
-    try:
-        return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        raise ConfigError(f"{path}: invalid YAML{where}: {_one_line(getattr(exc, 'problem', None) or exc)}") from None
+    return read_config_document(path, "SPEC file")
 
 
 def _name(value, where: str) -> str:
@@ -353,10 +326,6 @@ def parse_spec(raw: Any, source: str = "spec", base_dir=None) -> SweepSpec:
 
 
 # ----------------------------------------------------------------------------- one cell
-
-
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
 
 
 def _finite(x) -> float | None:
@@ -607,14 +576,6 @@ def run_sweep(spec: SweepSpec, out_dir, engine=None, on_row: Callable[[dict, int
 # ----------------------------------------------------------------------------- the figure
 
 
-def _float(text) -> float | None:
-    try:
-        x = float(text)
-    except (TypeError, ValueError):
-        return None
-    return x if math.isfinite(x) else None
-
-
 def plot_summary(rows: list[Mapping[str, str]], path, spec: SweepSpec) -> Path | None:
     """The summary figure: one panel per (mode, noise setting), the datasets along x, one
     marker per option set: the mean over seeds (bar) and every seed (dots), i.e. the
@@ -627,11 +588,11 @@ def plot_summary(rows: list[Mapping[str, str]], path, spec: SweepSpec) -> Path |
     from vislam.tools.atomic import atomic_path
 
     ok = [r for r in rows if r["status"] in DONE_STATUSES]
-    has_ate = any(_float(r["ate_m"]) is not None for r in ok)
+    has_ate = any(_finite(r["ate_m"]) is not None for r in ok)
     metric, label = ("ate_m", "ATE, SE(3)-aligned RMSE (m)") if has_ate else ("filter_seconds", "filter time (s)")
     values: dict[tuple, list[float]] = {}
     for r in ok:
-        x = _float(r[metric])
+        x = _finite(r[metric])
         if x is not None:
             values.setdefault((r["mode"], r["noise"], r["dataset"], r["options"]), []).append(x)
     if not values:
