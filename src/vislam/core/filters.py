@@ -41,7 +41,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
-from vislam.core.lie import se3_adjoint, se3_inverse
+from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
 from vislam.core.propagation import predict_pose, predict_state
 from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
@@ -358,7 +358,6 @@ class MappingFilter(_FrozenLog, _History):
         self.frame_index += 1
         t = self.frame_index
         self._delta.begin()
-        self._odometry.update()
         if world_T_imu is not None:
             world_T_imu = np.asarray(world_T_imu, dtype=np.float64)
             if world_T_imu.shape != (4, 4):
@@ -586,24 +585,17 @@ class SlamFilter(_FrozenLog, _History):
         behind the newest frame; :attr:`world_T_imu` is predicted up to the newest)."""
         return self.state.imu_T_world
 
-    def _predicted_now(self) -> tuple[np.ndarray, np.ndarray]:
-        """(imu_T_world, pose covariance) predicted from the last updated frame to the
-        newest frame with the IMU samples received since (the remap runs behind)."""
-        mean, cov = self.state.imu_T_world, self.state.pose_cov
-        if self.stall_buffer is not None:
-            for frame in self.stall_buffer.pending_frames():
-                if self._t < 0 and frame is self.stall_buffer.pending_frames()[0]:
-                    continue  # the first frame has no prediction
-                mean, cov, _ = predict_pose(mean, cov, frame.dt_s, _twist(frame.linear_velocity_mps,
-                                                                          frame.angular_velocity_radps), self._W)
-        return mean, cov
-
     @property
     def world_T_imu(self) -> np.ndarray:
-        """(4, 4) the IMU pose in the world frame at the newest frame."""
+        """(4, 4) the IMU pose in the world frame at the newest frame: with the
+        stalled-track remap, the last updated pose predicted with the IMU samples
+        received since (μ ← exp(−τ û) μ per frame)."""
+        mean = self.state.imu_T_world
         if self.stall_buffer is not None and self.stall_buffer.n_pending:
-            return se3_inverse(self._predicted_now()[0])
-        return se3_inverse(self.state.imu_T_world)
+            frames = self.stall_buffer.pending_frames()
+            for frame in frames[1:] if self._t < 0 else frames:  # the first frame has no prediction
+                mean = se3_exp(-frame.dt_s * _twist(frame.linear_velocity_mps, frame.angular_velocity_radps)) @ mean
+        return se3_inverse(mean)
 
     @property
     def pose_covariance(self) -> np.ndarray:
