@@ -35,7 +35,7 @@ from vislam.core.corrections import rotate_cam_T_imu
 from vislam.tools.dataset_io import load_sequence, save_sequence
 
 ORIGINALS = ["sparse/0020", "sparse/0027", "sparse/0042", "dense/0022", "dense/0027", "dense/0034"]
-ALTERED = ["dense/0027", "sparse/0027"]
+ALTERED = ["dense/0027", "sparse/0027", "sparse/0020", "dense/0034"]
 
 
 def variants(seq):
@@ -67,6 +67,7 @@ def row(file: str, variant: str, expected: str, path: Path) -> dict:
         "rotation_error_deg": e.get("imu_camera_rotation_error_deg"),
         "rotation_error_deg_se": e.get("imu_camera_rotation_error_deg_se"),
         "rotation_correction_deg": e.get("imu_camera_rotation_correction_deg"),
+        "body_roll_sensitivity_deg": e.get("body_roll_sensitivity_deg"),
         "best_shift": assoc.get("best_shift"), "association_z": assoc.get("z_vs_next"),
         "time_offset_s": e.get("time_offset_s"), "time_offset_s_se": e.get("time_offset_s_se"),
         "velocity_noise_mps": e["imu_noise"]["velocity_mps"], "angular_noise_radps": e["imu_noise"]["angular_radps"],

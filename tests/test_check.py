@@ -10,7 +10,8 @@ import pytest
 import yaml
 
 from vislam.cli import main
-from vislam.core.check import CheckOptions, check_sequence, estimate_pixel_noise, estimate_white_noise
+from vislam.core.check import (CheckOptions, check_sequence, estimate_pixel_noise, estimate_white_noise, roll_tilted,
+                               vehicle_axes)
 from vislam.core.corrections import apply_corrections
 from vislam.core.lie import so3_exp, so3_log
 from vislam.core.options import FilterOptions
@@ -118,6 +119,43 @@ def test_extrinsic_rotation_error_and_gyro_bias_are_estimated_together():
     # roll and pitch rates of the drive itself average to ~3°/25 s at most
     np.testing.assert_allclose(result.estimates["gyro_bias_radps"][:2], bias[:2], atol=0.003)
     np.testing.assert_allclose(result.suggested["gyro_bias_radps"], bias, atol=0.003)
+
+
+def test_roll_tilted_is_the_rotation_of_the_rates_about_the_forward_axis():
+    rng = np.random.default_rng(0)
+    u = np.hstack([rng.uniform(5, 15, (50, 1)), rng.normal(0, 0.1, (50, 2)), rng.normal(0, 0.1, (50, 3))])
+    axes = vehicle_axes(u)
+    fwd, up = axes
+    assert abs(fwd @ up) < 1e-12 and fwd[0] > 0.99
+    gain = np.radians(0.5)
+    out = roll_tilted(u, gain, axes)
+    a_lat = np.linalg.norm(u[:, :3], axis=1) * (u[:, 3:] @ up)
+    exact = np.einsum("kij,kj->ki", so3_exp((gain * a_lat)[:, None] * fwd), u[:, 3:])
+    # first order: the error is at most the second-order term θ²/2 |ω|
+    err = np.linalg.norm(out[:, 3:] - exact, axis=1)
+    theta = np.abs(gain * a_lat)
+    assert np.all(err <= 0.5 * theta**2 * np.linalg.norm(u[:, 3:], axis=1) + 1e-12)
+    assert np.max(np.linalg.norm(out[:, 3:] - u[:, 3:], axis=1)) > 20 * np.max(err)  # not just ω unchanged
+    np.testing.assert_array_equal(out[:, :3], u[:, :3])
+    assert roll_tilted(u, 0.0, axes) is u
+
+
+def test_body_roll_makes_a_rotation_about_the_forward_axis_less_certain_not_others():
+    # Levelled rates of a body that rolls 2°/(m/s²) outward in turns; seed 3 turns mostly
+    # one way, so the roll looks like a ~4° rotation about the camera's optical axis.
+    truth = simulate_drive(SIM)
+    seq = truth.sequence
+    u = seq.velocities()
+    rolled = seq.replace(angular_velocity_in_imu_radps=roll_tilted(u, -np.radians(2.0), vehicle_axes(u))[:, 3:])
+    plain = check_sequence(rolled, CheckOptions(max_pairs=8000, roll_gradient_prior_deg_per_mps2=0.0))
+    nuisance = check_sequence(rolled, FAST)
+    sens = np.abs(nuisance.estimates["body_roll_sensitivity_deg"])
+    assert sens[2] > 0.3 and sens[2] > 10 * max(sens[0], sens[1])  # about camera z (forward) only
+    assert nuisance.estimates["imu_camera_rotation_chi2"] < 0.5 * plain.estimates["imu_camera_rotation_chi2"]
+    # a 3° error about camera x (pitch) on the same drive stays as significant
+    _, pitched = _check(extrinsic_error_deg=(3.0, 0.0, 0.0))
+    assert pitched.estimates["imu_camera_rotation_chi2"] > 3 * 11.34
+    assert _severity(pitched, "imu-camera-rotation") == "WARN"
 
 
 @pytest.mark.parametrize("offset_s", [0.04, 0.08])

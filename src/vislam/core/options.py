@@ -44,6 +44,10 @@ EKF_VARIANTS = ("oc", "standard")
 #: Which velocity sample describes the interval between frames k and k+1: "next" (the
 #: sample of frame k+1, the KITTI convention and the default) or "current" (sample k).
 VELOCITY_ASSOCIATIONS = ("next", "current")
+#: The frame the linear velocities are expressed in: "body" (the IMU frame, the
+#: report's model) or "level" (heading-aligned and levelled: x forward and y left in the
+#: horizontal plane, z up — an INS's vf/vl/vu, as in KITTI's OXTS data).
+VELOCITY_FRAMES = ("body", "level")
 #: Options that change the data before filtering (see vislam.core.corrections).
 DATA_CORRECTION_FIELDS = ("gyro_bias_radps", "velocity_bias_mps", "imu_camera_rotation_correction_deg", "cam_T_imu",
                           "velocity_association", "time_offset_s")
@@ -189,6 +193,12 @@ class FilterOptions:
     #: t + time_offset_s. The velocities are resampled (linear interpolation) at the
     #: frame times before use.
     time_offset_s: float = 0.0
+    #: The frame of the linear velocities, see VELOCITY_FRAMES. With "level" each sample
+    #: is turned into the body frame with the current estimate's roll and pitch (the
+    #: world z axis, i.e. the first IMU frame's, taken as up) before the prediction, so
+    #: the vertical motion comes from the velocities' own z and an attitude error no
+    #: longer tilts the forward motion up or down.
+    velocity_frame: str = "level"
 
     # --- sliding-window smoother (mode "smoother", vislam.core.smoother) ---------------
     #: Length of the fixed-lag window (s): poses older than this, and landmarks not
@@ -262,6 +272,9 @@ class FilterOptions:
             elif f.name == "repeated_observations":
                 if value not in REPEATED_POLICIES:
                     raise ConfigError(f"repeated_observations must be one of {', '.join(REPEATED_POLICIES)}, got {value!r}")
+            elif f.name == "velocity_frame":
+                if value not in VELOCITY_FRAMES:
+                    raise ConfigError(f"velocity_frame must be one of {', '.join(VELOCITY_FRAMES)}, got {value!r}")
             elif f.name == "stalled_tracks":
                 if value not in STALL_POLICIES:
                     raise ConfigError(f"stalled_tracks must be one of {', '.join(STALL_POLICIES)}, got {value!r}")

@@ -23,7 +23,20 @@ import numpy as np
 from vislam.core.lie import se3_adjoint, se3_exp
 from vislam.core.sequence import Sequence
 
-__all__ = ["motion_increments", "predict_pose", "predict_state", "dead_reckoning"]
+__all__ = ["motion_increments", "predict_pose", "predict_state", "dead_reckoning", "level_to_body"]
+
+
+def level_to_body(imu_T_world: np.ndarray, linear_velocity: np.ndarray) -> np.ndarray:
+    """A linear velocity given in the level frame (heading-aligned: x forward and y left
+    in the horizontal plane, z up; the world z axis is up) expressed in the body frame
+    of the pose ``imu_T_world``: v_body = R_bw · Rz(ψ) · v_level, with ψ the body's
+    heading (the world-frame direction of its x axis in the horizontal plane)."""
+    R_bw = imu_T_world[:3, :3]
+    psi = np.arctan2(R_bw[0, 1], R_bw[0, 0])  # world_R_imu[1, 0], world_R_imu[0, 0]
+    c, s = np.cos(psi), np.sin(psi)
+    v = np.asarray(linear_velocity, dtype=np.float64)
+    v_world = np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])  # Rz(ψ) v
+    return R_bw @ v_world
 
 
 def motion_increments(sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:

@@ -235,6 +235,12 @@ class SimulationOptions:
     time_offset_s: float = 0.0
     #: Constant gyro bias added to every angular-velocity sample (rad/s, IMU x, y, z).
     gyro_bias_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: The frame of the recorded linear velocities: "level" (default; heading-aligned and
+    #: levelled, z up, as an INS reports them and as the KITTI files hold them, see
+    #: FilterOptions.velocity_frame) or "body" (the IMU frame). Sample k is turned with
+    #: the attitude of frame k − 1, the start of the interval it describes. The angular
+    #: velocities stay in the IMU frame. ``true_velocities`` are body twists either way.
+    velocity_frame: str = "level"
 
     def __post_init__(self):
         for f in fields(self):
@@ -244,6 +250,10 @@ class SimulationOptions:
                 continue
             if f.name in ("time_offset_s", "velocity_shift"):
                 _check_fault_scalar(self, f.name, value)
+                continue
+            if f.name == "velocity_frame":
+                if value not in ("body", "level"):
+                    raise ConfigError(f"velocity_frame must be body or level, got {value!r}")
                 continue
             if f.type in ("int", int):
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
@@ -1109,7 +1119,17 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
     # --- velocities -------------------------------------------------------------------------
     vel_noise = streams["velocity_noise"].standard_normal((T, 6))
     sigma = np.array([opts.velocity_noise_mps] * 3 + [opts.angular_noise_radps] * 3)
-    measured = true_velocities + sigma * vel_noise
+    recorded = true_velocities
+    if opts.velocity_frame == "level":
+        recorded = true_velocities.copy()
+        R = world_T_imu[np.maximum(np.arange(T) - 1, 0), :3, :3]  # world_R_imu at the interval's start
+        psi = np.arctan2(R[:, 1, 0], R[:, 0, 0])
+        v_world = np.einsum("kij,kj->ki", R, true_velocities[:, :3])
+        c, s_ = np.cos(psi), np.sin(psi)
+        recorded[:, 0] = c * v_world[:, 0] + s_ * v_world[:, 1]  # Rz(ψ)ᵀ v_world
+        recorded[:, 1] = -s_ * v_world[:, 0] + c * v_world[:, 1]
+        recorded[:, 2] = v_world[:, 2]
+    measured = recorded + sigma * vel_noise
     recorded_cam_T_imu = cam_T_imu
     if opts.has_recording_faults:
         measured, recorded_cam_T_imu = _apply_recording_faults(opts, timestamps, measured, cam_T_imu)
