@@ -77,19 +77,30 @@ def predict_state(state, tau: float, u: np.ndarray, W: np.ndarray, oc_correction
         cov[6:n, :6] = cross.T
 
 
-def dead_reckoning(sequence: Sequence, W: np.ndarray, initial_cov: np.ndarray):
-    """Integrate the whole sequence: (T, 4, 4) imu_T_world means and (T, 6, 6) covariances."""
+def dead_reckoning(sequence: Sequence, W: np.ndarray, initial_cov: np.ndarray, velocity_frame: str = "level"):
+    """Integrate the whole sequence: (T, 4, 4) imu_T_world means and (T, 6, 6)
+    covariances. ``velocity_frame`` as FilterOptions.velocity_frame ("level": each
+    linear velocity turned into the body frame of the pose it starts from)."""
     tau, u = motion_increments(sequence)
     T = sequence.n_frames
-    steps = se3_exp(-tau[:, None] * u)  # exp(−τ_k û_{k+1}), batched
-    F = se3_adjoint(steps)
-    Q = (tau * tau)[:, None, None] * W  # τ² W
     means = np.empty((T, 4, 4))
     covs = np.empty((T, 6, 6))
     means[0] = np.eye(4)
     covs[0] = initial_cov
+    if velocity_frame == "level":
+        steps = np.empty((T - 1, 4, 4))
+        for k in range(T - 1):
+            uk = u[k].copy()
+            uk[:3] = level_to_body(means[k], uk[:3])
+            steps[k] = se3_exp(-tau[k] * uk)
+            means[k + 1] = steps[k] @ means[k]  # μ_{k+1} = exp(−τ û) μ_k
+    else:
+        steps = se3_exp(-tau[:, None] * u)  # exp(−τ_k û_{k+1}), batched
+        for k in range(T - 1):
+            means[k + 1] = steps[k] @ means[k]  # μ_{k+1} = exp(−τ û) μ_k
+    F = se3_adjoint(steps)
+    Q = (tau * tau)[:, None, None] * W  # τ² W
     for k in range(T - 1):
-        means[k + 1] = steps[k] @ means[k]  # μ_{k+1} = exp(−τ û) μ_k
         c = F[k] @ covs[k] @ F[k].T + Q[k]  # Σ_{k+1} = F Σ_k Fᵀ + τ² W
         covs[k + 1] = 0.5 * (c + c.T)
     return means, covs

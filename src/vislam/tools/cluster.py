@@ -174,7 +174,7 @@ def open_engine(scheduler: str | None = None, workers: int | None = None) -> Ite
     saved = {k: os.environ.get(k) for k in WORKER_ENV}
     os.environ.update(WORKER_ENV)  # inherited by the spawned worker processes
     try:
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                                host="127.0.0.1", env=dict(WORKER_ENV))
     except (OSError, RuntimeError, TimeoutError) as exc:
         cause = exc.__cause__ or exc
