@@ -408,7 +408,7 @@ def run(args) -> int:
         from vislam.core.corrections import apply_corrections
 
         sequence = apply_corrections(sequence, options)  # a no-op if the estimators apply them again
-        if gt is not None and args.gt_frame == "cam":  # camera poses -> IMU with the corrected cam_T_imu
+        if gt is not None and gt_info["frame"] == "cam":  # camera poses -> IMU with the corrected cam_T_imu
             gt, gt_info = ground_truth_from_args(args, sequence)
 
     stage = OutputStage(args.out)
