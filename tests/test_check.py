@@ -316,9 +316,12 @@ def test_cli_run_auto_uses_and_records_the_suggestions(tmp_path):
     assert main(["run", str(data), "--mode", "localization", "--auto", "--quiet", "--velocity-noise", "0.7",
                  "--out", str(out)]) == 0
     assert json.loads((out / "summary.json").read_text())["options"]["velocity_noise_mps"] == 0.7
-    # not (yet) for compare: a one-line error before any output
-    assert main(["compare", str(data), "--auto", "--out", str(tmp_path / "cmp")]) != 0
-    assert not (tmp_path / "cmp").exists()
+    # compare --auto: the same check and suggestions
+    assert main(["compare", str(data), "--auto", "--quiet", "--methods", "separate", "--out",
+                 str(tmp_path / "cmp")]) == 0
+    content = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
+    assert content["auto"]["suggested"]["velocity_association"] == "current"
+    assert content["options"]["velocity_association"] == "current"
 
 
 def test_cli_simulate_fault_flags(tmp_path):

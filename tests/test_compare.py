@@ -17,6 +17,8 @@ from vislam.tools.trajectory_io import write_kitti
 RUN_FILES = {"trajectory.tum", "trajectory.kitti", "trajectory.png", "summary.json", "landmarks.ply",
              "landmarks.npz"}
 EVAL_FILES = {"metrics.json", "error_over_distance.png"}
+#: The report's two EKF methods only (the smoother has its own tests below; it costs ~4x SLAM).
+EKF = ["--methods", "separate,slam"]
 NOISE = ["--add-velocity-noise", "0.5", "--add-angular-noise", "0.05", "--velocity-noise", "0.5",
          "--angular-noise", "0.05"]
 
@@ -34,6 +36,11 @@ def small(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return _drive(tmp_path_factory, 60)
+
+
+@pytest.fixture(scope="module")
 def long(tmp_path_factory):
     return _drive(tmp_path_factory, 300)
 
@@ -45,7 +52,7 @@ def names(path):
 def test_compare_writes_both_runs_the_figure_and_the_json(tmp_path, small, capsys):
     data, drive = small
     out = tmp_path / "cmp"
-    assert main(["compare", str(data / "sequence.npz"), "--out", str(out)]) == 0
+    assert main(["compare", str(data / "sequence.npz"), "--out", str(out), *EKF]) == 0
     printed = capsys.readouterr().out
     assert "separately" in printed and "SLAM" in printed and str(out) in printed
     assert names(out) == {"separate", "slam", "comparison.png", "comparison.json"}
@@ -72,7 +79,7 @@ def test_compare_writes_both_runs_the_figure_and_the_json(tmp_path, small, capsy
 def test_compare_with_ground_truth_slam_beats_localization_under_imu_noise(tmp_path, long):
     data, drive = long
     out = tmp_path / "cmp"
-    code = main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet", *NOISE,
+    code = main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet", *NOISE, *EKF,
                  "--gt", str(data / "groundtruth.tum"), "--gt-format", "tum"])
     assert code == 0
     content = json.loads((out / "comparison.json").read_text())
@@ -99,10 +106,11 @@ def test_compare_with_ground_truth_slam_beats_localization_under_imu_noise(tmp_p
 def test_compare_replaces_an_earlier_output_as_a_whole(tmp_path, small):
     data, _ = small
     out = tmp_path / "cmp"
-    assert main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet"]) == 0
+    assert main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet", *EKF]) == 0
     (out / "slam" / "stale.txt").write_text("from an older run")
     (out / "unrelated.txt").write_text("keep me")
-    assert main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet", "--add-pixel-noise", "1"]) == 0
+    assert main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet", "--add-pixel-noise", "1",
+                 *EKF]) == 0
     assert names(out / "slam") == RUN_FILES
     assert (out / "unrelated.txt").read_text() == "keep me"
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no staging debris
@@ -117,7 +125,7 @@ def test_compare_interrupted_while_writing_leaves_nothing(tmp_path, small, monke
 
     monkeypatch.setattr(comparison_module, "plot_comparison", interrupted)  # after separate/ and slam/ are staged
     out = tmp_path / "deep" / "cmp"
-    assert main(["compare", str(data / "sequence.npz"), "--out", str(out)]) == 130
+    assert main(["compare", str(data / "sequence.npz"), "--out", str(out), *EKF]) == 130
     assert "no output written" in capsys.readouterr().err
     assert not (tmp_path / "deep").exists()
 
@@ -139,6 +147,8 @@ def test_compare_bad_inputs_one_line_nonzero_nothing_written(tmp_path, small, ca
         [seq, "--add-angular-noise", "-0.1"],
         [seq, "--add-velocity-bias", "0.1"],
         [seq, "--velocity-noise", "-1"],
+        [seq, "--methods", "slam,kalman"],
+        [seq, "--methods", ","],
     ]
     for i, args in enumerate(cases):
         out = tmp_path / f"out{i}"
@@ -150,6 +160,63 @@ def test_compare_bad_inputs_one_line_nonzero_nothing_written(tmp_path, small, ca
     code = main(["compare", seq, "--out", str(a_file)])
     assert code != 0 and "not a directory" in capsys.readouterr().err
     assert a_file.read_text() == "x"
+
+
+def test_compare_shows_the_smoother_and_its_refinement_beside_the_ekf(tmp_path, tiny, capsys):
+    data, drive = tiny
+    out = tmp_path / "cmp"
+    # the default methods: separately, SLAM, the smoother and the refined smoother
+    assert main(["compare", str(data / "sequence.npz"), "--out", str(out), "--add-velocity-noise", "0.3",
+                 "--add-angular-noise", "0.006", "--velocity-noise", "0.3", "--angular-noise", "0.006",
+                 "--gt", str(data / "groundtruth.tum"), "--gt-format", "tum"]) == 0
+    printed = capsys.readouterr().out
+    assert "smoother" in printed and "refined" in printed and "ms/frame" in printed
+    assert names(out) == {"separate", "slam", "smoother", "refine", "comparison.png", "comparison.json"}
+    content = json.loads((out / "comparison.json").read_text())
+    assert list(content["methods"]) == ["separate", "slam", "smoother", "refine"]
+    smoother, refined = content["methods"]["smoother"], content["methods"]["refine"]
+    assert smoother["mode"] == refined["mode"] == "smoother"
+    s_summary = json.loads((out / "smoother" / "summary.json").read_text())
+    r_summary = json.loads((out / "refine" / "summary.json").read_text())
+    assert s_summary["options"]["refine"] is False and r_summary["options"]["refine"] is True
+    assert "refine_seconds" in r_summary["timing"] and "refine_seconds" not in s_summary["timing"]
+    # one smoother run serves both: the refined folder's smoother.tum is the smoother's trajectory
+    assert (out / "refine" / "smoother.tum").read_text() == (out / "smoother" / "trajectory.tum").read_text()
+    assert refined["filter_seconds"] == pytest.approx(smoother["filter_seconds"])
+    assert refined["estimation_seconds"] == pytest.approx(smoother["filter_seconds"] + refined["refine_seconds"])
+    for key in ("smoother", "refine"):
+        m = content["methods"][key]
+        assert m["frames_processed"] == 60 and m["frame_ms_median"] > 0
+        independent = evaluate_files(out / key / "trajectory.tum", data / "groundtruth.tum", gt_format="tum")
+        assert independent.ape.rmse == pytest.approx(content["ate_m"][key], rel=1e-9)
+        # on the noisy IMU the visual estimators beat dead reckoning by far
+        assert content["ate_m"][key] < 0.5 * content["ate_m"]["separate"], content["ate_m"]
+
+
+def test_compare_auto_checks_first_records_and_applies_the_suggestions(tmp_path, capsys):
+    """A clean IMU whose gyro has a roll/pitch-rate bias: without --auto the estimators
+    trust the gyro and tilt; --auto finds the bias, subtracts it, and says so."""
+    bias = (0.01, 0.01, 0.0)
+    drive = simulate_drive(SimulationOptions(n_frames=150, seed=1, gyro_bias_radps=bias))
+    write_simulated_drive(drive, tmp_path / "data")
+    seq, gt = str(tmp_path / "data" / "sequence.npz"), str(tmp_path / "data" / "groundtruth.tum")
+    common = ["--methods", "slam", "--gt", gt, "--gt-format", "tum"]
+    assert main(["compare", seq, "--out", str(tmp_path / "plain"), "--quiet", *common]) == 0
+    assert main(["compare", seq, "--out", str(tmp_path / "auto"), "--auto", *common]) == 0
+    captured = capsys.readouterr()
+    assert "vislam check: WARN imu-bias" in captured.err and "auto (check): gyro_bias_radps" in captured.out
+    plain = json.loads((tmp_path / "plain" / "comparison.json").read_text())
+    auto = json.loads((tmp_path / "auto" / "comparison.json").read_text())
+    assert plain["auto"] is None
+    suggested = auto["auto"]["suggested"]["gyro_bias_radps"]
+    # roll/pitch (a yaw bias is not observable this way), within half the bias on a 15 s drive
+    assert np.linalg.norm(np.subtract(suggested[:2], bias[:2])) < 0.5 * np.linalg.norm(bias[:2]), suggested
+    assert "imu-bias" in {f["code"] for f in auto["auto"]["findings"]}
+    assert auto["options"]["gyro_bias_radps"] == suggested  # applied ...
+    summary = json.loads((tmp_path / "auto" / "slam" / "summary.json").read_text())
+    assert summary["auto"] == auto["auto"] and summary["options"]["gyro_bias_radps"] == suggested
+    # ... and the result improves
+    assert auto["ate_m"]["slam"] < 0.5 * plain["ate_m"]["slam"], (auto["ate_m"], plain["ate_m"])
 
 
 # ----------------------------------------------------------------------------- vislam run --gt

@@ -90,9 +90,10 @@ def test_report_metrics_row_for_the_dataset_with_ground_truth(report):
     rows = table_rows(md, "datasets")
     with_gt = [r for r in rows if "0100" in r[1]]
     without = [r for r in rows if "0101" in r[1]]
-    assert {r[2] for r in with_gt} == {"separately", "SLAM"} and len(without) == 2
+    assert {r[2] for r in with_gt} == {"separately", "SLAM", "smoother", "refined"} and len(without) == 4
+    keys = {"separately": "separate", "SLAM": "slam", "smoother": "smoother", "refined": "refine"}
     for r in with_gt:
-        key = "slam" if r[2] == "SLAM" else "separate"
+        key = keys[r[2]]
         metrics = json.loads((out / "runs" / "sparse-0100" / key / "metrics.json").read_text())
         assert r[ate] == f"{metrics['ape_rmse_m']:.2f}"
         assert float(r[ate]) < 5.0  # the camera ground truth was converted to the IMU
@@ -114,7 +115,8 @@ def test_report_metrics_row_for_the_dataset_with_ground_truth(report):
 
 def test_report_progress_lines_on_stderr(data_dir, tmp_path, capsys):
     out = tmp_path / "r"
-    code = main(["report", "--data", str(data_dir), "--out", str(out), "--sim-frames", "0", "--noise-levels", "none"])
+    code = main(["report", "--data", str(data_dir), "--out", str(out), "--sim-frames", "0", "--noise-levels", "none",
+                 "--no-smoother"])
     assert code == 0
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
@@ -127,8 +129,8 @@ def test_report_progress_lines_on_stderr(data_dir, tmp_path, capsys):
 
 def test_library_returns_the_structured_result(data_dir, tmp_path):
     lines = []
-    result = generate_report(data_dir, tmp_path / "r", ReportSettings(noise_levels=(), simulation_frames=0),
-                             log=lines.append)
+    result = generate_report(data_dir, tmp_path / "r", ReportSettings(noise_levels=(), simulation_frames=0,
+                                                                       smoother=False), log=lines.append)
     assert result.markdown_path.is_file() and result.html_path.is_file()
     assert len(lines) == 4 and result.seconds > 0
     assert [r.method for r in result.rows] == ["separately", "SLAM"] * 2
@@ -159,3 +161,28 @@ def test_bad_report_options(tmp_path, data_dir, capsys):
     code = main(["report", "--data", str(data_dir), "--out", str(tmp_path / "o"), "--sim-frames", "-5"])
     assert code != 0 and "--sim-frames" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_every_dataset_runs_with_its_checks_suggestions(tmp_path):
+    """No dense/ special case: a noisy dataset gets the noise vislam check measures, per
+    axis, and the report says which options were applied."""
+    root = tmp_path / "data"
+    (root / "dense").mkdir(parents=True)
+    drive = simulate_drive(SimulationOptions(n_frames=150, seed=2, velocity_noise_mps=0.5, angular_noise_radps=0.05))
+    save_sequence(drive.sequence, root / "dense" / "0102.npz")
+    result = generate_report(root, tmp_path / "r", ReportSettings(noise_levels=(), simulation_frames=0,
+                                                                  smoother=False))
+    assert [r.method for r in result.rows] == ["separately", "SLAM"]
+    summary = json.loads((tmp_path / "r" / "runs" / "dense-0102" / "slam" / "summary.json").read_text())
+    suggested = summary["auto"]["suggested"]
+    assert summary["options"]["velocity_noise_mps"] == suggested["velocity_noise_mps"]
+    assert summary["options"]["angular_noise_radps"] == suggested["angular_noise_radps"]
+    # the check measured the simulated noise (per axis, within 30 %)
+    assert len(suggested["velocity_noise_mps"]) == 3
+    for value in suggested["velocity_noise_mps"]:
+        assert value == pytest.approx(0.5, rel=0.3)
+    for value in suggested["angular_noise_radps"]:
+        assert value == pytest.approx(0.05, rel=0.3)
+    md = result.markdown_path.read_text()
+    assert "Options from `vislam check`: velocity_noise_mps (" in md
+    assert "WARN noise" in md

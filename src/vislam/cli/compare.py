@@ -1,9 +1,12 @@
-"""``vislam compare DATA --out DIR``: localization + mapping ("separately") against SLAM.
+"""``vislam compare DATA --out DIR``: localization + mapping ("separately"), SLAM, the
+sliding-window smoother and its batch refinement, side by side.
 
-Runs both on the same data — with the noise of the ``--add-*`` flags injected once,
-seeded — and writes, all or nothing, ``DIR/separate/`` and ``DIR/slam/`` (the files of
-``vislam run``), ``DIR/comparison.png`` (both trajectories and landmark sets on one xy
-figure, the report's Figs 7–9) and ``DIR/comparison.json``. The work is
+Runs the ``--methods`` (default: all four) on the same data — with the noise of the
+``--add-*`` flags injected once, seeded; with ``--auto`` after ``vislam check``'s
+suggestions, as ``vislam run --auto`` — and writes, all or nothing, one folder per method
+(``DIR/separate/``, ``DIR/slam/``, ``DIR/smoother/``, ``DIR/refine/``: the files of
+``vislam run``), ``DIR/comparison.png`` (every trajectory and landmark set on one xy
+figure with a side view, the report's Figs 7–9) and ``DIR/comparison.json``. The work is
 :func:`vislam.tools.comparison.run_comparison` and
 :func:`vislam.tools.comparison.write_comparison`; this module parses, calls and prints.
 """
@@ -18,6 +21,7 @@ from pathlib import Path
 from vislam.cli.run import (
     _print,
     add_filter_arguments,
+    auto_options,
     add_ground_truth_arguments,
     add_noise_injection_arguments,
     ground_truth_from_args,
@@ -26,9 +30,12 @@ from vislam.cli.run import (
     noise_spec_from_args,
     options_from_args,
 )
-from vislam.errors import ConfigError, EstimationError
+from vislam.errors import EstimationError
 
 __all__ = ["register", "run", "format_comparison"]
+
+#: The default of --methods (tools.comparison.DEFAULT_METHODS, without importing it here).
+DEFAULT_METHODS = ("separate", "slam", "smoother", "refine")
 
 _COMMAND_START = time.time()
 
@@ -36,21 +43,30 @@ _COMMAND_START = time.time()
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "compare",
-        help="localization + mapping (separately) vs SLAM on the same data, one comparison figure",
-        description="Run IMU localization + landmark mapping on its trajectory (the report's 'separately') and "
-        "visual-inertial SLAM on the same data, with the noise of the --add-* flags injected once (seeded), and "
-        "write DIR/separate/ and DIR/slam/ (the files of 'vislam run'), DIR/comparison.png (both trajectories and "
-        "both landmark sets in the xy plane, the report's Figs 7-9) and DIR/comparison.json (frames, landmarks, "
-        "filter time and, with --gt, the ATE and KITTI errors of each method). Outputs appear all together or not "
-        "at all.",
+        help="localization + mapping (separately), SLAM, the smoother and its refinement on the same data, "
+        "one comparison figure",
+        description="Run IMU localization + landmark mapping on its trajectory (the report's 'separately'), "
+        "visual-inertial SLAM, the sliding-window smoother and the smoother with its batch refinement (--methods) "
+        "on the same data, with the noise of the --add-* flags injected once (seeded), and write one folder per "
+        "method (DIR/separate/, DIR/slam/, DIR/smoother/, DIR/refine/: the files of 'vislam run'), "
+        "DIR/comparison.png (every trajectory and landmark set in the xy plane, with a side view; the report's "
+        "Figs 7-9) and DIR/comparison.json (frames, landmarks, time per frame and, with --gt, the ATE and KITTI "
+        "errors of each method). Outputs appear all together or not at all.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="example (the report's Fig. 7 with numbers):\n"
         "  vislam compare ../shared/data/sparse/0027.npz --out cmp27 \\\n"
         "      --add-velocity-noise 0.3 --add-angular-noise 0.006 --velocity-noise 0.3 --angular-noise 0.006 \\\n"
-        "      --gt ../shared/data/groundtruth/0027.txt   # KITTI ground truth: left-camera poses (the default)",
+        "      --gt ../shared/data/groundtruth/0027.txt   # KITTI ground truth: left-camera poses (the default)\n"
+        "  vislam compare ../shared/data/dense/0027.npz --out cmp27d --auto \\\n"
+        "      --gt ../shared/data/groundtruth/0027.txt   # noise and corrections from vislam check",
     )
     parser.add_argument("data", metavar="DATA", help="dataset file (.npz)")
     parser.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")
+    parser.add_argument("--methods", metavar="LIST", default=",".join(DEFAULT_METHODS),
+                        help="comma-separated methods to run: separate (localization + mapping), slam, smoother, "
+                        "refine (smoother + batch refinement; one smoother run serves both), or all (default: "
+                        "%(default)s; the smoother costs about 4x SLAM per frame, ~20 s on a dense drive, refine a "
+                        "few s more: --methods separate,slam for the EKF alone)")
     add_filter_arguments(parser)
     add_noise_injection_arguments(parser)
     add_ground_truth_arguments(parser)
@@ -66,63 +82,80 @@ def format_comparison(comparison, content: dict, out_dir) -> str:
     """The human summary printed by ``vislam compare`` (``content``: comparison.json's)."""
     from vislam.tools.comparison import describe_filter_noise, describe_noise
 
-    lines = [f"{comparison.label}: localization + mapping (separately) vs SLAM",
+    from vislam.tools.auto import describe_suggestions
+    from vislam.tools.comparison import METHOD_SHORT
+
+    lines = [f"{comparison.label}: " + " vs ".join(METHOD_SHORT[k] for k in comparison.methods),
              f"added noise:   {describe_noise(comparison.noise)}",
              f"filter noise:  {describe_filter_noise(comparison.options)}"]
-    header = f"{'method':<38}{'frames':>8}{'landmarks':>11}{'filter s':>10}"
+    if comparison.auto is not None:
+        lines.append(f"auto (check): {describe_suggestions(comparison.auto)}")
+    header = f"{'method':<38}{'frames':>8}{'landmarks':>11}{'time s':>9}{'ms/frame':>10}"
     has_gt = comparison.ground_truth is not None
     if has_gt:
         header += f"{'ATE (m)':>10}{'KITTI %':>9}{'deg/100m':>10}"
     lines.append(header)
     for key, m in content["methods"].items():
         frames = f"{m['frames_processed']}" + ("" if m["frames_processed"] == m["frames"] else f"/{m['frames']}")
-        row = f"{m['label']:<38}{frames:>8}{m['landmarks_in_map']:>11}{m['filter_seconds']:>10.2f}"
+        row = (f"{m['label']:<38}{frames:>8}{m['landmarks_in_map']:>11}{m['estimation_seconds']:>9.2f}"
+               f"{_num(m['frame_ms_median'], '.2f'):>10}")
         ev = m.get("evaluation")
         if has_gt and ev:
             row += (f"{_num(ev['ape_rmse_m'], '.3f'):>10}{_num(ev['kitti_t_pct'], '.2f'):>9}"
                     f"{_num(ev['kitti_r_deg_per_100m'], '.3f'):>10}")
         lines.append(row)
-    lines.append(f"outputs:       {out_dir}/ (separate/, slam/, comparison.png, comparison.json)")
+    folders = ", ".join(f"{k}/" for k in content["methods"])
+    lines.append(f"time s: estimation (refine: smoother + refinement); ms/frame: median per frame (refine: the "
+                 f"smoother's)" if "refine" in content["methods"] else
+                 "time s: estimation; ms/frame: median per frame")
+    lines.append(f"outputs:       {out_dir}/ ({folders}, comparison.png, comparison.json)")
     return "\n".join(lines)
 
 
 def run(args) -> int:
-    from vislam.tools.comparison import dataset_record, run_comparison, write_comparison
+    from vislam.tools.comparison import dataset_record, parse_methods, run_comparison, runs_of, write_comparison
     from vislam.tools.dataset_io import load_sequence
     from vislam.tools.outputs import OutputStage, process_start_time
 
     start_time = process_start_time() or _COMMAND_START
     # every input is checked before any work or output
-    if getattr(args, "auto", False):
-        raise ConfigError("--auto is supported by vislam run only (for now); run `vislam check DATA --out DIR` and "
-                          "pass DIR/suggested.yaml with --config")
+    methods = parse_methods(args.methods)
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     data = Path(args.data)
     sequence = load_sequence(data)
     gt, gt_info = ground_truth_from_args(args, sequence)
-    if options.has_data_corrections:  # e.g. from vislam check's suggested.yaml
+    noise_info = auto = None
+    if noise is not None:  # injected once, here, so that --auto checks what the methods will see
+        from vislam.core.noise import inject_noise
+
+        sequence, noise_info = inject_noise(sequence, noise)
+    if getattr(args, "auto", False):  # as vislam run --auto: check first, its suggestions below --config/flags
+        options, auto = auto_options(args, sequence, args.quiet)
+    if options.has_data_corrections:  # from --auto or vislam check's suggested.yaml
         from vislam.core.corrections import apply_corrections
 
         sequence = apply_corrections(sequence, options)
-        if gt is not None and args.gt_frame == "cam":  # camera poses -> IMU with the corrected cam_T_imu
+        if gt is not None and gt_info["frame"] == "cam":  # camera poses -> IMU with the corrected cam_T_imu
             gt, gt_info = ground_truth_from_args(args, sequence)
-    dataset = dataset_record(sequence, data)
+    dataset = dataset_record(sequence, data)  # cam_T_imu as corrected, for vislam eval of the folders
 
     stage = OutputStage(args.out)
     close = lambda: None  # noqa: E731
     try:
         with stage:
-            bar, close = make_progress(2 * sequence.n_frames, "compare", args.quiet)
-            offsets = {"separate": 0, "slam": sequence.n_frames}
-            progress = (lambda method, done: bar(offsets[method] + done)) if bar else None
+            runs = runs_of(methods)
+            bar, close = make_progress(len(runs) * sequence.n_frames, "compare", args.quiet)
+            offsets = {key: i * sequence.n_frames for i, key in enumerate(runs)}
+            progress = (lambda run_key, done: bar(offsets[run_key] + done)) if bar else None
             try:
-                comparison = run_comparison(sequence, options, noise=noise, ground_truth=gt,
-                                            ground_truth_info=gt_info, dataset=dataset, progress=progress)
+                comparison = run_comparison(sequence, options, noise=noise, noise_info=noise_info, ground_truth=gt,
+                                            ground_truth_info=gt_info, dataset=dataset, progress=progress,
+                                            methods=methods, auto=auto)
             finally:
                 close()
             content = write_comparison(stage.staging, comparison, start_time=start_time)
-            stage.commit(order=("separate", "slam", "comparison.png", "comparison.json"), replace_directories=True)
+            stage.commit(order=(*methods, "comparison.png", "comparison.json"), replace_directories=True)
     except KeyboardInterrupt:
         close()
         print(interrupted_message("compare", stage), file=sys.stderr)

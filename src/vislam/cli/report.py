@@ -47,7 +47,9 @@ def register(subparsers) -> None:
         help="regenerate the report's whole results section (figures, tables, metrics) in one command",
         description="Run every experiment of the report's results section on a data folder laid out like the shared "
         "data (sparse/*.npz, dense/*.npz, groundtruth/<stem>.txt with KITTI left-camera poses; any subset): "
-        "localization + mapping and SLAM on every dataset (Figs 1-6), with metrics where ground truth exists; the "
+        "localization + mapping, SLAM, the sliding-window smoother and its refinement on every dataset (Figs 1-6; "
+        "each dataset checked first and run with the check's suggestions, as --auto), with metrics where ground "
+        "truth exists; the "
         "comparison under artificially increased IMU noise on the sparse datasets (Figs 7-9); the moving-landmark "
         "failure and its fixes on the simulator (Figs 10-11); and a summary table. Writes DIR/report.md, "
         "DIR/report.html (self-contained), DIR/figures/ and the per-run outputs under DIR/runs/, all together or "
@@ -62,6 +64,9 @@ def register(subparsers) -> None:
     parser.add_argument("--sim-frames", type=int, metavar="N", default=SimulationOptions().n_frames,
                         help="frames of the simulated drives of the moving-landmark section; 0 leaves it out "
                         "(default: %(default)s)")
+    parser.add_argument("--no-smoother", action="store_true",
+                        help="leave the sliding-window smoother and its refinement out of the per-dataset tables "
+                        "(they cost about 4x SLAM's time per frame, ~20 s more per dense drive)")
     from vislam.cli.sweep import add_engine_arguments
 
     add_engine_arguments(parser, sequential_help="run every experiment in this process, one after the other, as "
@@ -78,7 +83,7 @@ def run(args) -> int:
 
     if args.sim_frames < 0 or args.sim_frames == 1:
         raise ConfigError(f"--sim-frames must be 0 (no simulation) or at least 2, got {args.sim_frames}")
-    settings = ReportSettings(simulation_frames=args.sim_frames)
+    settings = ReportSettings(simulation_frames=args.sim_frames, smoother=not args.no_smoother)
     if args.noise_levels is not None:
         settings = dataclasses.replace(settings, noise_levels=args.noise_levels)
 

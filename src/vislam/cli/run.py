@@ -279,17 +279,15 @@ def options_from_args(args, suggestions=None):
 
 
 def auto_options(args, sequence, quiet: bool):
-    """``--auto``: (options, summary entry) from ``vislam check``'s suggestions on ``sequence``."""
-    from vislam.core.check import check_sequence
+    """``--auto``: (options, summary entry) from ``vislam check``'s suggestions on ``sequence``
+    (:func:`vislam.tools.auto.auto_check`; the findings that are not OK on stderr)."""
+    from vislam.tools.auto import auto_check, findings_to_print
 
-    check = check_sequence(sequence)
-    options = options_from_args(args, check.suggested)
+    record = auto_check(sequence)
+    options = options_from_args(args, record["suggested"])
     if not quiet:
-        for f in check.findings:
-            if f.severity != "OK":
-                print(f"vislam check: {f.severity} {f.code}: {f.message}", file=sys.stderr)
-    record = {"suggested": check.suggested, "findings": [f.to_dict() for f in check.findings],
-              "check_seconds": check.elapsed_s}
+        for line in findings_to_print(record):
+            print(line, file=sys.stderr)
     return options, record
 
 
@@ -410,7 +408,7 @@ def run(args) -> int:
         from vislam.core.corrections import apply_corrections
 
         sequence = apply_corrections(sequence, options)  # a no-op if the estimators apply them again
-        if gt is not None and args.gt_frame == "cam":  # camera poses -> IMU with the corrected cam_T_imu
+        if gt is not None and gt_info["frame"] == "cam":  # camera poses -> IMU with the corrected cam_T_imu
             gt, gt_info = ground_truth_from_args(args, sequence)
 
     stage = OutputStage(args.out)

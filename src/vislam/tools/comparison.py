@@ -1,14 +1,18 @@
-"""Comparing estimators on the same data: the report's Part A ("separately") against SLAM.
+"""Comparing estimators on the same data: the report's Part A ("separately") against SLAM,
+and both against the sliding-window smoother and its batch refinement.
 
 * :func:`run_comparison` injects the requested noise (:func:`vislam.core.noise.inject_noise`)
-  once, runs IMU localization + landmark mapping on the localization trajectory
-  ("separately", the report's Figs 1–3) and SLAM (Figs 4–6) on the same noisy sequence,
-  evaluates both against a ground truth when one is given, and returns a
+  once and runs the requested :data:`METHODS` on the same noisy sequence: IMU
+  localization + landmark mapping on the localization trajectory ("separately", the
+  report's Figs 1–3), SLAM (Figs 4–6), the fixed-lag smoother (:mod:`vislam.core.smoother`)
+  and the smoother followed by its batch refinement ("refine"; one smoother run serves
+  both). It evaluates each against a ground truth when one is given and returns a
   :class:`Comparison` — no I/O.
-* :func:`write_comparison` writes a comparison into a directory: ``separate/`` and
-  ``slam/`` (the files of ``vislam run``, plus ``metrics.json`` and
-  ``error_over_distance.png`` with a ground truth), ``comparison.png`` (both trajectories
-  and both landmark sets on one xy figure, the report's Figs 7–9) and ``comparison.json``.
+* :func:`write_comparison` writes a comparison into a directory: one folder per method
+  (``separate/``, ``slam/``, ``smoother/``, ``refine/``: the files of ``vislam run``, plus
+  ``metrics.json`` and ``error_over_distance.png`` with a ground truth),
+  ``comparison.png`` (every trajectory and landmark set on one xy figure with a side view,
+  the report's Figs 7–9) and ``comparison.json``.
 * Ground truth of a run: :func:`load_run_ground_truth` (checked against the dataset
   before any work), :func:`evaluate_run`, :func:`stage_evaluation` (``metrics.json``,
   ``error_over_distance.png``) and :func:`evaluation_summary` (the compact dict stored
@@ -43,6 +47,9 @@ from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, TrajectoryFile
 
 __all__ = [
     "METHODS",
+    "DEFAULT_METHODS",
+    "EKF_METHODS",
+    "parse_methods",
     "METHOD_LABELS",
     "METHOD_COLORS",
     "METRICS_FILE",
@@ -63,13 +70,46 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: The two methods compared, in drawing order, and how figures and tables name them.
-METHODS = ("separate", "slam")
-METHOD_LABELS = {"separate": "localization + mapping (separately)", "slam": "visual-inertial SLAM"}
-METHOD_SHORT = {"separate": "separately", "slam": "SLAM"}
-METHOD_COLORS = {"separate": "tab:orange", "slam": "tab:blue"}
-#: Estimator mode of each method: "separately" is a mapping run on the localization poses.
-METHOD_MODES = {"separate": "mapping", "slam": "slam"}
+#: The methods a comparison can run, in drawing order, and how figures and tables name them.
+METHODS = ("separate", "slam", "smoother", "refine")
+#: What ``vislam compare`` runs by default: all of them. The smoother costs 2-4x SLAM per
+#: frame on the dense files and refine a few seconds more per drive: on dense 0027 the
+#: estimation takes 2.6 s (separately) + 9.7 s (SLAM) + 31 s (smoother and refine), the
+#: whole command 61 s on the loaded 2-core machine (see README); ``--methods
+#: separate,slam`` for the EKF alone.
+DEFAULT_METHODS = METHODS
+#: The report's two EKF methods (the noise comparison runs only these).
+EKF_METHODS = ("separate", "slam")
+METHOD_LABELS = {"separate": "localization + mapping (separately)", "slam": "visual-inertial SLAM",
+                 "smoother": "sliding-window smoother", "refine": "smoother + batch refinement"}
+METHOD_SHORT = {"separate": "separately", "slam": "SLAM", "smoother": "smoother", "refine": "refined"}
+METHOD_COLORS = {"separate": "tab:orange", "slam": "tab:blue", "smoother": "tab:green", "refine": "tab:purple"}
+#: Estimator mode of each method: "separately" is a mapping run on the localization poses;
+#: "refine" is the smoother with ``refine=True``.
+METHOD_MODES = {"separate": "mapping", "slam": "slam", "smoother": "smoother", "refine": "smoother"}
+#: Accepted spellings of the methods in ``--methods`` besides their keys.
+METHOD_ALIASES = {"separately": "separate", "localization+mapping": "separate", "ekf": "slam",
+                  "refined": "refine"}
+
+
+def parse_methods(text: str, flag: str = "--methods") -> tuple[str, ...]:
+    """The methods of a comma-separated list (keys of :data:`METHODS` or aliases), in
+    drawing order; ``"all"`` for every method. A ConfigError names ``flag``."""
+    from vislam.errors import ConfigError
+
+    items = [t.strip().lower() for t in str(text).split(",") if t.strip()]
+    if items == ["all"]:
+        return METHODS
+    chosen = set()
+    for item in items:
+        key = METHOD_ALIASES.get(item, item)
+        if key not in METHODS:
+            raise ConfigError(f"{flag}: unknown method {item!r}; expected a comma-separated list of "
+                              f"{', '.join(METHODS)} (or 'all')")
+        chosen.add(key)
+    if not chosen:
+        raise ConfigError(f"{flag}: expected at least one of {', '.join(METHODS)}, got {text!r}")
+    return tuple(k for k in METHODS if k in chosen)
 
 METRICS_FILE = "metrics.json"
 ERROR_FIGURE_FILE = "error_over_distance.png"
@@ -227,6 +267,23 @@ class MethodResult:
             return None
         return float(self.evaluation.ape.rmse)
 
+    @property
+    def refine_seconds(self) -> float | None:
+        """Time of the batch refinement (refine only), or None."""
+        value = (self.result.extra.get("timing") or {}).get("refine_seconds")
+        return float(value) if value is not None else None
+
+    @property
+    def estimation_seconds(self) -> float:
+        """Estimation time of the method: the filter's (or smoother's) frames plus, for
+        refine, the batch refinement."""
+        return float(self.result.stats.filter_seconds) + (self.refine_seconds or 0.0)
+
+    @property
+    def frame_ms_median(self) -> float | None:
+        fs = np.asarray(self.result.stats.frame_seconds)
+        return float(np.median(fs) * 1e3) if fs.size else None
+
     def to_dict(self) -> dict[str, Any]:
         r = self.result
         st = r.stats
@@ -242,7 +299,10 @@ class MethodResult:
             "landmarks_in_map": len(lm) if lm is not None else 0,
             "landmarks_rejected": int(np.count_nonzero(lm.status)) if lm is not None else 0,
             "filter_seconds": st.filter_seconds,
-            "real_time_factor": st.filter_seconds / processed_s if processed_s > 0 else None,
+            "frame_ms_median": self.frame_ms_median,
+            "refine_seconds": self.refine_seconds,
+            "estimation_seconds": self.estimation_seconds,
+            "real_time_factor": self.estimation_seconds / processed_s if processed_s > 0 else None,
             "partial": bool(r.partial),
             "error": r.error,
             "evaluation": evaluation_summary(self.evaluation) if self.evaluation is not None else None,
@@ -251,17 +311,19 @@ class MethodResult:
 
 @dataclass
 class Comparison:
-    """Localization + mapping ("separately") and SLAM on the same (noisy) sequence.
+    """Several estimators (:data:`METHODS`) on the same (noisy) sequence.
 
     Attributes:
         sequence: the sequence the filters ran on (with the injected noise).
-        options: the filter options of both runs.
+        options: the filter options of every run (refine: with ``refine=True``).
         noise: the injected noise, or None.
         noise_info: what :func:`inject_noise` reported, or None.
-        methods: ``{"separate": MethodResult, "slam": MethodResult}``.
+        methods: ``{key: MethodResult}`` in :data:`METHODS` order.
         ground_truth: the ground truth (world_T_imu), or None.
         ground_truth_info: provenance of the ground truth (file, format, frame).
         dataset: name, path, frames, landmarks, duration and a display ``label``.
+        auto: with ``--auto``, what :func:`vislam.tools.auto.auto_check` found and
+            suggested (``{"suggested", "findings", "check_seconds"}``), or None.
     """
 
     sequence: Sequence
@@ -272,6 +334,7 @@ class Comparison:
     ground_truth: TrajectoryFile | None = None
     ground_truth_info: dict[str, Any] | None = None
     dataset: dict[str, Any] = field(default_factory=dict)
+    auto: dict[str, Any] | None = None
 
     @property
     def label(self) -> str:
@@ -301,6 +364,7 @@ class Comparison:
             "options": self.options.to_dict(),
             "injected_noise": injected_noise_record(self.noise, self.noise_info),
             "ground_truth": self.ground_truth_info,
+            "auto": self.auto,
             "methods": {key: m.to_dict() for key, m in self.methods.items()},
             "ate_m": {key: m.ate_m for key, m in self.methods.items()},
             "partial": self.partial,
@@ -315,31 +379,86 @@ def dataset_record(sequence: Sequence, path=None, label: str | None = None) -> d
             "cam_T_imu": sequence.cam_T_imu.tolist()}
 
 
+def runs_of(methods) -> tuple[str, ...]:
+    """The estimator runs behind ``methods`` (progress keys): "separate", "slam" and one
+    "smoother" run for both "smoother" and "refine"."""
+    runs = [k for k in ("separate", "slam") if k in methods]
+    if "smoother" in methods or "refine" in methods:
+        runs.append("smoother")
+    return tuple(runs)
+
+
+def _smoother_before_refine(result: RunResult) -> RunResult:
+    """The smoother's own result out of a refined run: its final trajectory, its timings."""
+    extra = {k: v for k, v in result.extra.items() if k != "smoother_world_T_imu"}
+    if "timing" in extra:
+        extra["timing"] = {k: v for k, v in extra["timing"].items() if not k.startswith("refine_")}
+    return replace(result, world_T_imu=np.asarray(result.extra["smoother_world_T_imu"]),
+                   options=result.options.replace(refine=False), extra=extra)
+
+
+def _run_smoother_methods(sequence: Sequence, options: FilterOptions, methods, progress) -> dict[str, RunResult]:
+    """One smoother run for "smoother" and/or "refine" (refined only when asked for)."""
+    want_refine = "refine" in methods
+    result = run_estimator(sequence, "smoother", options.replace(refine=want_refine), progress=progress)
+    out: dict[str, RunResult] = {}
+    if want_refine and "smoother_world_T_imu" in result.extra:
+        if "smoother" in methods:
+            out["smoother"] = _smoother_before_refine(result)
+        out["refine"] = result
+    elif want_refine:  # the smoother stopped early: no refinement; both show the partial smoother
+        if "smoother" in methods:
+            out["smoother"] = replace(result, options=result.options.replace(refine=False))
+        out["refine"] = replace(result, error=f"{result.error} (not refined)" if result.error else result.error)
+    else:
+        out["smoother"] = result
+    return out
+
+
 def run_comparison(sequence: Sequence, options: FilterOptions, *, noise: NoiseSpec | None = None,
                    ground_truth: TrajectoryFile | None = None, ground_truth_info: Mapping[str, Any] | None = None,
                    dataset: Mapping[str, Any] | None = None,
-                   progress: Callable[[str, int], None] | None = None) -> Comparison:
-    """Inject ``noise`` (if any), run "separately" (localization, then mapping on its
-    trajectory) and SLAM with the same ``options``, and evaluate both against
-    ``ground_truth`` (world_T_imu, e.g. from :func:`load_run_ground_truth`) if given.
+                   progress: Callable[[str, int], None] | None = None, methods=EKF_METHODS,
+                   noise_info: Mapping[str, Any] | None = None, auto: Mapping[str, Any] | None = None) -> Comparison:
+    """Inject ``noise`` (if any), run ``methods`` (keys of :data:`METHODS`; by default
+    the report's "separately" — localization, then mapping on its trajectory — and SLAM)
+    with the same ``options``, and evaluate each against ``ground_truth`` (world_T_imu,
+    e.g. from :func:`load_run_ground_truth`) if given. "smoother" and "refine" share one
+    smoother run (``refine`` set as needed).
 
-    ``progress(method, frames_done)`` is called during the runs. A SLAM run that stops
-    early gives a partial result (``Comparison.partial``), evaluated on its frames.
+    ``noise_info`` given: ``sequence`` already carries ``noise`` (injected by the caller,
+    e.g. to check the noisy data first) and ``noise_info`` is what :func:`inject_noise`
+    reported; it is not injected again. ``auto``: the record of
+    :func:`vislam.tools.auto.auto_check` the options came from (kept in the comparison).
+
+    ``progress(run, frames_done)`` is called during the runs (``run`` in
+    :func:`runs_of`). A run that stops early gives a partial result
+    (``Comparison.partial``), evaluated on its frames.
     """
-    noise_info = None
-    if noise is not None:
+    methods = tuple(k for k in METHODS if k in set(methods))
+    if not methods:
+        raise ValueError("run_comparison: no method")
+    if noise is not None and noise_info is None:
         sequence, noise_info = inject_noise(sequence, noise)
-    methods: dict[str, MethodResult] = {}
-    for key in METHODS:
-        cb = (lambda done, key=key: progress(key, done)) if progress else None
-        result = run_estimator(sequence, METHOD_MODES[key], options, progress=cb)
+    results: dict[str, RunResult] = {}
+    for run_key in runs_of(methods):
+        cb = (lambda done, run_key=run_key: progress(run_key, done)) if progress else None
+        if run_key == "smoother":
+            results.update(_run_smoother_methods(sequence, options, methods, cb))
+        else:
+            results[run_key] = run_estimator(sequence, METHOD_MODES[run_key], options.replace(refine=False),
+                                             progress=cb)
+        logger.info("%s: %s done", sequence.name, run_key)
+    out: dict[str, MethodResult] = {}
+    for key in methods:
+        result = results[key]
         evaluation = evaluate_run(result, ground_truth, sequence) if ground_truth is not None else None
-        methods[key] = MethodResult(key, result, evaluation)
-        logger.info("%s: %s done in %.2f s", sequence.name, key, result.stats.filter_seconds)
+        out[key] = MethodResult(key, result, evaluation)
     info = dict(ground_truth_info) if ground_truth_info else (
         {"path": str(ground_truth.path), "format": ground_truth.fmt} if ground_truth is not None else None)
-    return Comparison(sequence, options, noise, noise_info, methods, ground_truth, info,
-                      dict(dataset) if dataset else dataset_record(sequence))
+    return Comparison(sequence, options, noise, dict(noise_info) if noise_info is not None else None, out,
+                      ground_truth, info, dict(dataset) if dataset else dataset_record(sequence),
+                      dict(auto) if auto is not None else None)
 
 
 def _fmt_m(x: float | None) -> str:
@@ -348,7 +467,7 @@ def _fmt_m(x: float | None) -> str:
 
 def comparison_title(comparison: Comparison) -> tuple[str, str]:
     """(title, subtitle) of the comparison figure."""
-    title = f"{comparison.label}: {METHOD_SHORT['separate']} vs {METHOD_SHORT['slam']}"
+    title = f"{comparison.label}: " + " vs ".join(METHOD_SHORT[k] for k in comparison.methods)
     lines = [f"added noise: {describe_noise(comparison.noise)} · filter noise: {describe_filter_noise(comparison.options)}"]
     if comparison.ground_truth is not None:
         lines.append("ATE (SE(3)-aligned RMSE): " + ", ".join(
@@ -368,17 +487,25 @@ def plot_comparison(comparison: Comparison, path) -> dict:
     """Draw the comparison figure (the report's Figs 7–9) at ``path``."""
     from vislam.tools.plotting import MapLayer, plot_comparison_map
 
-    # "separately" drawn wider underneath, so that it shows where both trajectories coincide
-    layers = [MapLayer(m.result.world_T_imu, _method_layer_label(m), METHOD_COLORS[k], m.result.landmarks,
-                       linewidth=2.8 if k == "separate" else 1.5, short=METHOD_SHORT[k])
+    # "separately" drawn wider underneath, so that it shows where the trajectories coincide.
+    # Maps: those of the EKF methods (the report's figures); the smoother's (which refine
+    # shares) only without them — three overlapping landmark sets hide each other (each
+    # run's own figure shows its map)
+    ekf = any(k in comparison.methods for k in EKF_METHODS)
+    shown = [k for k in comparison.methods if k in EKF_METHODS or not ekf][:2 if ekf else 1]
+    layers = [MapLayer(m.result.world_T_imu, _method_layer_label(m), METHOD_COLORS[k],
+                       m.result.landmarks if k in shown else None,
+                       linewidth=2.8 if k == "separate" else 1.5, short=METHOD_SHORT[k],
+                       # dashed: the smoother's line shows through where the refinement follows it
+                       linestyle="--" if k == "refine" and "smoother" in comparison.methods else "-")
               for k, m in comparison.methods.items()]
     title, subtitle = comparison_title(comparison)
     return plot_comparison_map(path, layers, title, subtitle, ground_truth=comparison.ground_truth_poses())
 
 
 def write_comparison(directory, comparison: Comparison, start_time: float | None = None) -> dict[str, Any]:
-    """Write ``separate/``, ``slam/``, ``comparison.png`` and ``comparison.json`` into
-    ``directory`` — meant to be a staging directory (see :meth:`OutputStage.commit`);
+    """Write one folder per method (``separate/``, ``slam/``, ``smoother/``, ``refine/``),
+    ``comparison.png`` and ``comparison.json`` into ``directory`` — meant to be a staging directory (see :meth:`OutputStage.commit`);
     the run folders are themselves written all-or-nothing. Returns comparison.json's
     content."""
     directory = Path(directory)
@@ -392,6 +519,10 @@ def write_comparison(directory, comparison: Comparison, start_time: float | None
         if m.result.mode == "mapping":
             dataset["poses"] = "localization"
         extra: dict[str, Any] = {"injected_noise": noise_record, "comparison": {"method": key, "label": m.label}}
+        if comparison.auto is not None:
+            extra["auto"] = comparison.auto
+        if "timing" in m.result.extra:  # smoother: its own timings and those of refine
+            extra["timing"] = m.result.extra["timing"]
         with OutputStage(directory / key) as stage:
             if m.evaluation is not None:
                 extra["evaluation"] = stage_evaluation(

@@ -5,14 +5,17 @@ From a data folder laid out like the shared data (``sparse/*.npz``, ``dense/*.np
 nothing, into the output directory:
 
 * ``runs/<dataset>/`` — for every dataset, localization + mapping ("separately", the
-  report's Figs 1–3) and SLAM (Figs 4–6) with :mod:`vislam.tools.comparison`: the files of
-  ``vislam run`` for both, the comparison figure, and metrics against the ground truth
-  when ``groundtruth/`` has a file of the same stem (``frame="cam"``). Dense datasets run
-  with the filter noise of their velocities (:data:`DENSE_FILTER_NOISE`);
+  report's Figs 1–3), SLAM (Figs 4–6) and, with ``ReportSettings.smoother``, the
+  sliding-window smoother and its batch refinement, with :mod:`vislam.tools.comparison`:
+  the files of ``vislam run`` for each, the comparison figure, and metrics against the
+  ground truth when ``groundtruth/`` has a file of the same stem (``frame="cam"``). Every
+  dataset is checked first (``vislam check``, :func:`vislam.tools.auto.auto_check`, as
+  ``--auto``) and runs with the check's suggestions: noise per axis, biases, conventions
+  (none on a clean file: the defaults);
 * ``runs/noise-<dataset>-<level>-<filter>/`` — the noise comparison (Figs 7–9) on the
-  sparse datasets: noise injected at each :class:`NoiseLevel`, with the filter left at its
-  defaults and with the filter told the injected level (σ_filter = √(σ_default² +
-  σ_added²));
+  sparse datasets (EKF methods only): noise injected at each :class:`NoiseLevel`, with the
+  filter left at the dataset's options and with the filter told the injected level
+  (σ_filter = √(σ_dataset² + σ_added²) per axis);
 * ``runs/simulator-<scene>/<variant>/`` — the moving-landmark failure (Figs 10–11) on the
   simulator: a drive with 10 % moving landmarks and 2 % outliers against the same drive
   with neither, SLAM with default options, without gating, with the robust preset and
@@ -28,9 +31,10 @@ ground-truth file become notes in the report; a folder with no usable dataset is
 
 The runs go to an ``engine`` (:mod:`vislam.tools.cluster`): by default they run in this
 process, one after the other, each when its section needs it; with a Dask engine
-(``vislam report`` starts a local cluster by default) every run is submitted up front, one
-task per comparison (localization + mapping + SLAM on one dataset and noise setting, with
-its run folders and figure) and per simulated drive and SLAM variant, and the sections
+(``vislam report`` starts a local cluster by default) every run is submitted up front: one
+check per dataset, one task per comparison (the methods on one dataset and noise setting,
+with its run folders and figure; it takes its options from the dataset's check) and per
+simulated drive and SLAM variant, and the sections
 take the results in the same order, so the tables and numbers are the same. The tasks
 write their run folders into the output's staging directory themselves: workers on other
 machines need the data folder and the output folder on a shared file system under the
@@ -56,8 +60,11 @@ from vislam.core.noise import NoiseSpec
 from vislam.core.options import ROBUST_PRESET, FilterOptions
 from vislam.core.results import RunResult
 from vislam.errors import DatasetError, VislamError
+from vislam.tools.auto import auto_check, auto_options, describe_suggestions
 from vislam.tools.comparison import (
     COMPARISON_FIGURE,
+    DEFAULT_METHODS,
+    EKF_METHODS,
     ERROR_FIGURE_FILE,
     METHOD_LABELS,
     METHOD_SHORT,
@@ -77,7 +84,6 @@ from vislam.tools.trajectory_io import TrajectoryFile
 __all__ = [
     "NoiseLevel",
     "DEFAULT_NOISE_LEVELS",
-    "DENSE_FILTER_NOISE",
     "SIMULATION_NOISE",
     "ReportSettings",
     "DatasetInput",
@@ -97,8 +103,6 @@ RUNS_DIR = "runs"
 FIGURES_DIR = "figures"
 KINDS = ("sparse", "dense")
 
-#: Filter noise of the dense datasets (their velocities carry white noise of about this).
-DENSE_FILTER_NOISE = {"velocity_noise_mps": 0.5, "angular_noise_radps": 0.05}
 #: IMU noise of the simulated drives of the moving-landmark section (and of the filter there).
 SIMULATION_NOISE = {"velocity_noise_mps": 0.5, "angular_noise_radps": 0.05}
 
@@ -116,10 +120,17 @@ class NoiseLevel:
                          pixel_noise_px=self.pixel_px, seed=seed)
 
     def told(self, base: FilterOptions) -> FilterOptions:
-        """``base`` with its noise model raised by this level: σ = √(σ_base² + σ_added²)."""
+        """``base`` with its noise model raised by this level: σ = √(σ_base² + σ_added²)
+        (per axis when ``base`` has per-axis noise, e.g. from the check)."""
+
+        def raised(value, added):
+            if isinstance(value, (tuple, list)):
+                return [math.hypot(v, added) for v in value]
+            return math.hypot(value, added)
+
         return base.replace(
-            velocity_noise_mps=math.hypot(base.velocity_noise_mps, self.velocity_mps),
-            angular_noise_radps=math.hypot(base.angular_noise_radps, self.angular_radps),
+            velocity_noise_mps=raised(base.velocity_noise_mps, self.velocity_mps),
+            angular_noise_radps=raised(base.angular_noise_radps, self.angular_radps),
             pixel_noise_px=math.hypot(base.pixel_noise_px, self.pixel_px))
 
     @property
@@ -144,6 +155,9 @@ class ReportSettings:
     simulation_frames: int = 600
     #: Seed of the simulated drives.
     simulation_seed: int = 0
+    #: The sliding-window smoother and its batch refinement beside the EKF in section 1
+    #: (about 4x SLAM's time per frame, plus the refinement).
+    smoother: bool = True
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -158,6 +172,8 @@ class DatasetInput:
     sequence: Any = None
     ground_truth_path: Path | None = None
     ground_truth: TrajectoryFile | None = None
+    #: The dataset's check (a future of :func:`_check_task`: the ``"auto"`` record).
+    check: Any = None
 
     @property
     def stem(self) -> str:
@@ -173,8 +189,14 @@ class DatasetInput:
         return f"{number}({self.kind} {self.stem})"
 
     @property
+    def auto(self) -> dict[str, Any] | None:
+        """The dataset's check record (suggestions, findings), or None before it is submitted."""
+        return self.check.result() if self.check is not None else None
+
+    @property
     def options(self) -> FilterOptions:
-        return FilterOptions(**DENSE_FILTER_NOISE) if self.kind == "dense" else FilterOptions()
+        """The options every run of this dataset starts from: the check's suggestions."""
+        return _dataset_options(self.auto)
 
     def ground_truth_info(self) -> dict | None:
         if self.ground_truth is None:
@@ -240,6 +262,8 @@ class ReportRow:
     directory: str
     partial: bool = False
     error: str | None = None
+    #: Median estimation time per frame (ms; refine: the smoother's frames).
+    frame_ms_median: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -269,14 +293,16 @@ def _row(section: str, dataset: str, method: str, result: RunResult, evaluation,
     ts = np.asarray(result.timestamps_s)
     processed = float(ts[-1] - ts[0]) if ts.size > 1 else 0.0
     lm = result.landmarks
+    seconds = st.filter_seconds + float((result.extra.get("timing") or {}).get("refine_seconds") or 0.0)
+    fs = np.asarray(st.frame_seconds)
     return ReportRow(
         section, dataset, method, added, filter_noise, st.frames, st.frames_processed,
         len(lm) if lm is not None else None, int(np.count_nonzero(lm.status)) if lm is not None else None,
         _finite(evaluation.ape.rmse) if evaluation is not None else None,
         _finite(evaluation.kitti.t_pct) if evaluation is not None else None,
         _finite(evaluation.kitti.r_deg_per_100m) if evaluation is not None else None,
-        st.filter_seconds, st.filter_seconds / processed if processed > 0 else None, directory,
-        bool(result.partial), result.error)
+        seconds, seconds / processed if processed > 0 else None, directory,
+        bool(result.partial), result.error, float(np.median(fs) * 1e3) if fs.size else None)
 
 
 def _comparison_rows(section: str, dataset: str, comparison: Comparison, directory: str) -> list[ReportRow]:
@@ -462,8 +488,12 @@ def _ate_text(comparison: Comparison) -> str:
 
 
 def _method_figs(directory: str, comparison: Comparison, label: str) -> list[tuple[str, str]]:
-    return [(f"{directory}/separate/{FIGURE}", f"{label}: IMU localization + landmark mapping (separately)"),
-            (f"{directory}/slam/{FIGURE}", f"{label}: visual-inertial SLAM")]
+    captions = {"separate": "IMU localization + landmark mapping (separately)", "slam": "visual-inertial SLAM",
+                "smoother": "sliding-window smoother (online and final estimates)",
+                "refine": "smoother with batch refinement (online, smoothed and refined)"}
+    # the refined run's figure shows the smoother's trajectories too: the smoother's own only without it
+    keys = [k for k in comparison.methods if not (k == "smoother" and "refine" in comparison.methods)]
+    return [(f"{directory}/{k}/{FIGURE}", f"{label}: {captions[k]}") for k in keys]
 
 
 def _error_figs(directory: str, comparison: Comparison, label: str) -> list[tuple[str, str]]:
@@ -547,6 +577,8 @@ def _command(data_dir: Path, out_dir: Path, settings: ReportSettings) -> str:
                                               for lv in settings.noise_levels) or "none")
     if settings.simulation_frames != ReportSettings.simulation_frames:
         cmd += f" --sim-frames {settings.simulation_frames}"
+    if not settings.smoother:
+        cmd += " --no-smoother"
     return cmd
 
 
@@ -574,11 +606,38 @@ def _noise_directory(d: DatasetInput, level: NoiseLevel, told: bool) -> str:
     return f"{RUNS_DIR}/noise-{d.key}-{level.slug}-filter-{'told' if told else 'default'}"
 
 
-def _comparison_task(sequence, ground_truth, ground_truth_info, dataset, options: FilterOptions,
-                     noise: NoiseSpec | None, directory: Path, start_time: float) -> Comparison:
-    """One comparison of the report, run and written into ``directory`` (a task)."""
+def _check_task(sequence) -> dict[str, Any]:
+    """The check of one dataset (a task): :func:`auto_check`'s record; a check that fails
+    gives no suggestions (the defaults) and says why under ``"error"``."""
+    try:
+        return auto_check(sequence)
+    except VislamError as exc:
+        return {"suggested": {}, "findings": [], "check_seconds": None, "error": str(exc)}
+
+
+def _dataset_options(check: dict[str, Any] | None, told: NoiseLevel | None = None) -> FilterOptions:
+    """The options of a dataset's runs: its check's suggestions (``--auto``), raised by
+    ``told``'s injected noise when given."""
+    options = auto_options(check)
+    return told.told(options) if told is not None else options
+
+
+def _comparison_task(sequence, ground_truth_path, ground_truth, ground_truth_info, dataset, check,
+                     told: NoiseLevel | None, noise: NoiseSpec | None, directory: Path, start_time: float,
+                     methods=EKF_METHODS) -> Comparison:
+    """One comparison of the report, run and written into ``directory`` (a task): the
+    options from the dataset's ``check`` record (and ``told``), the check's data
+    corrections applied (the camera ground truth converted with the corrected cam_T_imu)."""
+    options = _dataset_options(check, told)
+    if options.has_data_corrections:
+        from vislam.core.corrections import apply_corrections
+
+        sequence = apply_corrections(sequence, options)
+        if ground_truth_path is not None:
+            ground_truth = load_run_ground_truth(ground_truth_path, sequence, "kitti", "cam")
+        dataset = {**dataset, "cam_T_imu": sequence.cam_T_imu.tolist()}
     comparison = run_comparison(sequence, options, noise=noise, ground_truth=ground_truth,
-                                ground_truth_info=ground_truth_info, dataset=dataset)
+                                ground_truth_info=ground_truth_info, dataset=dataset, methods=methods, auto=check)
     write_comparison(directory, comparison, start_time=start_time)
     return comparison
 
@@ -604,19 +663,30 @@ class _ReportBuilder:
         self.pending: dict[str, Any] = {}
         (root / FIGURES_DIR).mkdir()
 
-    def _submit_comparison(self, d: DatasetInput, directory: str, options: FilterOptions, noise: NoiseSpec | None,
-                           priority: int = 0):
-        return self.engine.submit(_comparison_task, d.sequence, d.ground_truth, d.ground_truth_info(),
-                                  dataset_record(d.sequence, d.path, d.label), options, noise, self.root / directory,
-                                  self.start_time, priority=priority)
+    def _submit_comparison(self, d: DatasetInput, directory: str, told: NoiseLevel | None, noise: NoiseSpec | None,
+                           priority: int = 0, methods=EKF_METHODS):
+        if d.check is None:
+            d.check = self.engine.submit(_check_task, d.sequence, priority=20)
+        return self.engine.submit(_comparison_task, d.sequence, d.ground_truth_path if d.ground_truth is not None
+                                  else None, d.ground_truth, d.ground_truth_info(),
+                                  dataset_record(d.sequence, d.path, d.label), d.check, told, noise,
+                                  self.root / directory, self.start_time, methods, priority=priority)
+
+    @property
+    def dataset_methods(self) -> tuple[str, ...]:
+        """The methods of section 1: the EKF's, and the smoother's unless switched off."""
+        return DEFAULT_METHODS if self.settings.smoother else EKF_METHODS
 
     def submit_all(self, usable: list[DatasetInput]) -> None:
         """Submit every run of the report to the engine, in the order the sections take
-        them (the longest first where the engine honours priorities); a sequential
-        engine runs each only when its section asks for it."""
+        them (the longest first where the engine honours priorities; each dataset's check
+        before its runs); a sequential engine runs each only when its section asks for it."""
         for d in usable:
-            self.pending[f"{RUNS_DIR}/{d.key}"] = self._submit_comparison(d, f"{RUNS_DIR}/{d.key}", d.options, None,
-                                                                          priority=5 if d.kind == "dense" else 0)
+            d.check = self.engine.submit(_check_task, d.sequence, priority=20)
+        for d in usable:
+            self.pending[f"{RUNS_DIR}/{d.key}"] = self._submit_comparison(
+                d, f"{RUNS_DIR}/{d.key}", None, None, priority=5 if d.kind == "dense" else 0,
+                methods=self.dataset_methods)
         if self.settings.noise_levels:
             for d in usable:
                 if d.kind != "sparse":
@@ -625,8 +695,8 @@ class _ReportBuilder:
                     spec = level.spec(self.settings.noise_seed)
                     for told in (False, True):
                         directory = _noise_directory(d, level, told)
-                        self.pending[directory] = self._submit_comparison(
-                            d, directory, level.told(d.options) if told else d.options, spec)
+                        self.pending[directory] = self._submit_comparison(d, directory, level if told else None,
+                                                                          spec)
         if self.settings.simulation_frames:
             self.pending.update(_submit_moving(self.engine, self.root, self.settings, self.start_time))
 
@@ -634,10 +704,11 @@ class _ReportBuilder:
         self.figures.extend(p for p, _ in figs)
         self.doc.figures(figs)
 
-    def compare(self, d: DatasetInput, directory: str, options: FilterOptions, noise: NoiseSpec | None,
-                what: str) -> Comparison | None:
+    def compare(self, d: DatasetInput, directory: str, told: NoiseLevel | None, noise: NoiseSpec | None,
+                what: str, methods=EKF_METHODS) -> Comparison | None:
         """Run and write one comparison; a failure becomes a note (and None)."""
-        future = self.pending.pop(directory, None) or self._submit_comparison(d, directory, options, noise)
+        future = self.pending.pop(directory, None) or self._submit_comparison(d, directory, told, noise,
+                                                                              methods=methods)
         try:
             comparison = future.result()
         except VislamError as exc:
@@ -658,40 +729,58 @@ class _ReportBuilder:
         rows = []
         for d in usable:
             s = d.sequence
+            auto = d.auto
+            if auto.get("error"):
+                self.notes.append(f"{d.path}: vislam check failed ({auto['error']}); runs with the default options")
+            warned = [f"{f['severity']} {f['code']}" for f in auto["findings"] if f["severity"] != "OK"]
             rows.append([f"{d.kind}/{d.path.name}", str(s.n_frames), f"{s.duration_s:.1f}", str(s.n_landmarks),
                          f"{s.observations.n_observations / max(s.n_frames, 1):.1f}",
                          d.ground_truth_path.name if d.ground_truth is not None else "—",
-                         describe_filter_noise(d.options)])
-        doc.table(["Dataset", "Frames", "Duration (s)", "Landmarks", "Obs./frame", "Ground truth", "Filter noise"],
-                  rows, "lrrrrll")
+                         ", ".join(warned) or ("OK" if not auto.get("error") else "failed"),
+                         describe_suggestions(auto), describe_filter_noise(d.options)])
+        doc.table(["Dataset", "Frames", "Duration (s)", "Landmarks", "Obs./frame", "Ground truth", "vislam check",
+                   "Applied (check's suggestions)", "Filter noise"], rows, "lrrrrllll")
         doc.p("Ground truth (`groundtruth/<stem>.txt`, KITTI format) holds left-camera poses; it is converted to the "
               "IMU with each dataset's `cam_T_imu`. ATE is the RMSE of the IMU position after SE(3) Umeyama "
               "alignment (evo); KITTI t and r are the odometry benchmark's average translational (%) and rotational "
-              "(deg/100 m) drift over 100–800 m segments. The dense datasets' velocities carry white noise of about "
-              "0.5 m/s and 0.05 rad/s per axis and sample, so their filter is told that noise; the sparse ones use "
-              "the defaults.")
+              "(deg/100 m) drift over 100–800 m segments. Every dataset is checked first (`vislam check`, as "
+              "`vislam run --auto`): its runs use the check's suggestions — IMU noise per axis, gyro bias, "
+              "IMU–camera rotation, velocity association, time offset, where the data asks for them — and the "
+              "defaults otherwise. The dense datasets' velocities carry white noise of about 0.5 m/s and "
+              "0.05 rad/s per axis and sample, which the check measures (earlier reports set 0.5 m/s and "
+              "0.05 rad/s for files under dense/ by hand).")
 
     def datasets_section(self, usable: list[DatasetInput]) -> None:
         doc = self.doc
-        doc.h(2, "1. Localization and mapping separately, and SLAM (Figs 1–6)")
+        smoother = "smoother" in self.dataset_methods
+        doc.h(2, "1. Localization and mapping separately, and SLAM (Figs 1–6)" + (
+            "; the smoother beside them" if smoother else ""))
         doc.p("For every dataset: IMU localization by EKF prediction, then landmark mapping by EKF update on that "
-              "trajectory (\"separately\", Part A of the report), and visual-inertial SLAM (Part B). Each run's "
-              "files are in the folder named in the table.")
+              "trajectory (\"separately\", Part A of the report), and visual-inertial SLAM (Part B)"
+              + (", and beyond the report the sliding-window smoother on GTSAM over the same measurements "
+                 "(`vislam run --mode smoother`) and its batch Levenberg–Marquardt refinement (`--refine`; one "
+                 "smoother run serves both rows)" if smoother else "")
+              + ". Each run's files are in the folder named in the table; time is estimation only (refined: "
+              "smoother + refinement), ms/frame its median per frame.")
         for d in usable:
             directory = f"{RUNS_DIR}/{d.key}"
-            comparison = self.compare(d, directory, d.options, None, "separately + SLAM")
+            comparison = self.compare(d, directory, None, None, " + ".join(METHOD_SHORT[k] for k in
+                                                                            self.dataset_methods),
+                                      methods=self.dataset_methods)
             if comparison is None:
                 continue
             new = _comparison_rows("datasets", d.label, comparison, directory)
             self.rows += new
             doc.h(3, d.label)
+            doc.p(f"Options from `vislam check`: {describe_suggestions(d.auto)}; filter noise "
+                  f"{describe_filter_noise(d.options)}.")
             doc.table(["Method", "Frames", "Landmarks", "ATE (m)", "KITTI t (%)", "KITTI r (deg/100 m)",
-                       "Filter time (s)", "RTF", "Folder"],
+                       "Time (s)", "ms/frame", "RTF", "Folder"],
                       [[r.method, _frames(r), _landmarks(r), _n(r.ate_m, ".2f"), _n(r.kitti_t_pct, ".2f"),
-                        _n(r.kitti_r_deg_per_100m, ".3f"), _n(r.filter_seconds, ".2f"),
-                        _n(r.real_time_factor, ".2g"), f"`{r.directory}/`"] for r in new], "lrrrrrrrl")
+                        _n(r.kitti_r_deg_per_100m, ".3f"), _n(r.filter_seconds, ".2f"), _n(r.frame_ms_median, ".2f"),
+                        _n(r.real_time_factor, ".2g"), f"`{r.directory}/`"] for r in new], "lrrrrrrrrl")
             self.add_figures(_method_figs(directory, comparison, d.label))
-            self.add_figures([(f"{directory}/{COMPARISON_FIGURE}", f"{d.label}: both methods"
+            self.add_figures([(f"{directory}/{COMPARISON_FIGURE}", f"{d.label}: every method"
                                + (" and the ground truth" if d.ground_truth is not None else ""))]
                              + _error_figs(directory, comparison, d.label))
 
@@ -707,23 +796,26 @@ class _ReportBuilder:
             return
         levels = "; ".join(describe_noise(lv.spec(settings.noise_seed), seed=False) for lv in settings.noise_levels)
         doc.p(f"White Gaussian noise is added to every velocity sample of the sparse datasets ({levels}; per axis "
-              f"and sample, seed {settings.noise_seed}). Each level runs twice: with the filter's default noise "
-              f"model ({describe_filter_noise(FilterOptions())}), which trusts the now noisy IMU, and with the "
-              "filter told the injected level (σ = √(σ_default² + σ_added²)), so that SLAM can lean on the cameras. "
+              f"and sample, seed {settings.noise_seed}). Each level runs twice: with the dataset's own noise "
+              f"model (the check's suggestion for the clean file; the defaults, {describe_filter_noise(FilterOptions())}, "
+              "where it suggests none), which trusts the now noisy IMU, and with the filter told the injected level "
+              "(σ = √(σ_dataset² + σ_added²) per axis), so that SLAM can lean on the cameras. "
               "\"Separately\" is the same in both: dead reckoning does not depend on the noise model.")
         panels = []
         for d in sparse:
             table, figs = [], []
-            baseline = [r for r in self.rows if r.section == "datasets" and r.dataset == d.label]
-            bars = [("no added noise", baseline[0].ate_m, baseline[1].ate_m)] if len(baseline) == 2 else []
+            baseline = {r.method: r for r in self.rows if r.section == "datasets" and r.dataset == d.label}
+            sep0, slam0 = baseline.get(METHOD_SHORT["separate"]), baseline.get(METHOD_SHORT["slam"])
+            bars = [("no added noise", sep0.ate_m, slam0.ate_m)] if sep0 and slam0 else []
             for level in settings.noise_levels:
                 spec = level.spec(settings.noise_seed)
                 added = describe_noise(spec, seed=False)
                 for told in (False, True):
-                    options = level.told(d.options) if told else d.options
+                    options = _dataset_options(d.auto, level if told else None)
                     tag = "told" if told else "default"
                     directory = _noise_directory(d, level, told)
-                    comparison = self.compare(d, directory, options, spec, f"noise {level.slug}, filter {tag}")
+                    comparison = self.compare(d, directory, level if told else None, spec,
+                                              f"noise {level.slug}, filter {tag}")
                     if comparison is None:
                         continue
                     sep, slam = new = _comparison_rows("noise", d.label, comparison, directory)
