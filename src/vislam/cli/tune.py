@@ -37,6 +37,11 @@ def register(subparsers) -> None:
                         help="options file (YAML/TOML) with the other options; its noise values are replaced")
     parser.add_argument("--frames", type=int, metavar="N",
                         help="score each candidate on the first N frames only (cheaper; default: all)")
+    parser.add_argument("--grid", type=int, default=4, metavar="N",
+                        help="points of the coarse log grid per IMU noise and of the pixel-noise line (default 4: "
+                        "16 + 4 runs)")
+    parser.add_argument("--refine", type=int, default=3, metavar="N",
+                        help="pattern-search rounds after the grid, 6 runs each (default 3)")
     add_engine_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors and the output paths")
     parser.set_defaults(func=run)
@@ -58,6 +63,7 @@ def _base_options(config) -> dict:
 def run(args) -> int:
     from vislam.cli.sweep import configure_dask_logging, terminate_as_interrupt
     from vislam.errors import ConfigError, DatasetError, OutputError
+    from vislam.core.tune import SearchSpace
     from vislam.tools.cluster import open_engine
     from vislam.tools.tune import write_tune_outputs, run_tune
 
@@ -73,7 +79,10 @@ def run(args) -> int:
         raise ConfigError(f"--frames must be >= 2, got {args.frames}")
     if args.sequential and args.scheduler:
         raise ConfigError("--sequential and --scheduler exclude each other")
+    if args.grid < 2 or args.refine < 0:
+        raise ConfigError(f"--grid must be >= 2 and --refine >= 0, got {args.grid} and {args.refine}")
     base = _base_options(args.config)
+    space = SearchSpace(coarse_points=args.grid, pixel_points=args.grid, refine_rounds=args.refine)
     quiet = args.quiet
 
     def say(text: str) -> None:
@@ -92,7 +101,8 @@ def run(args) -> int:
     try:
         with terminate_as_interrupt(), open_engine(args.scheduler, workers) as engine:
             say(f"engine: {engine.name}; {args.data}" + (f", first {args.frames} frames" if args.frames else ""))
-            result = run_tune(str(data.resolve()), engine, base=base, frames=args.frames, on_round=on_round)
+            result = run_tune(str(data.resolve()), engine, base=base, frames=args.frames, space=space,
+                              on_round=on_round)
     except KeyboardInterrupt:
         print("vislam tune: interrupted; nothing written", file=sys.stderr)
         return 130

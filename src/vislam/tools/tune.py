@@ -231,6 +231,7 @@ def plot_objective(result: TuneResult, path) -> None:
     (log axis; colour: search round), the chosen value, and check's estimate."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     ok = [s for s in result.scores if math.isfinite(s.objective)]
     fig = Figure(figsize=(13, 4.2))
@@ -263,10 +264,12 @@ def plot_objective(result: TuneResult, path) -> None:
             if est > 0:
                 ax.axvline(est, color="gray", ls="--", label=f"vislam check {est:.3g}")
         ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(_LABELS[name])
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("objective: mean predictive log-density per observation")
-    handles, labels = axes[0].get_legend_handles_labels()
     for ax in axes:
         h, lab = ax.get_legend_handles_labels()
         ax.legend([hh for hh, ll in zip(h, lab) if not ll.startswith("round")] + [hh for hh, ll in zip(h, lab)
