@@ -264,7 +264,8 @@ def plot_objective(result: TuneResult, path) -> None:
             if est > 0:
                 ax.axvline(est, color="gray", ls="--", label=f"vislam check {est:.3g}")
         ax.set_xscale("log")
-        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        lo, hi = getattr(result.space, name)
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0) if hi / lo < 30 else (1.0,)))
         ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(_LABELS[name])
