@@ -571,6 +571,14 @@ class SlamFilter(_FrozenLog, _History):
         self._init_frozen_log()
         self._init_history()
         self.failed: str | None = None
+        #: Optional observer of the innovations before gating (e.g. vislam.core.tune's
+        #: likelihood): called in every update as ``hook(r, H_pose, H_lm, blocks, V,
+        #: in_front, nis)`` with what :func:`slam_predict_nis` returns for the
+        #: observations of landmarks in the state. None (default): not called.
+        self.innovation_hook = None
+        #: Observations skipped because their landmark was rejected earlier (the
+        #: observations no innovation is computed for, besides repeats and new landmarks).
+        self.observations_of_rejected = 0
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
         self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames) if opts.remaps_stalled_tracks else None
 
@@ -734,6 +742,7 @@ class SlamFilter(_FrozenLog, _History):
             rep = np.zeros_like(rep)
         track_rows, rejected = self.tracks.lookup(ids_seen)
         usable = ~rep & ~rejected
+        self.observations_of_rejected += int(np.count_nonzero(rejected & ~rep))
         return ids_seen[usable], z[usable], track_rows[usable]
 
     def _update_live(self, slots: np.ndarray, ids: np.ndarray, rows: np.ndarray, z: np.ndarray, N_pose):
@@ -748,6 +757,8 @@ class SlamFilter(_FrozenLog, _History):
         V = self._V
         drift = self._drift_gate < np.inf
         r, Hp, Hl, in_front, nis, blocks = slam_predict_nis(state, self.model, slots, z, V, N_pose)
+        if self.innovation_hook is not None:
+            self.innovation_hook(r, Hp, Hl, blocks, V, in_front, nis)
         ok = in_front & (nis <= self._gate)
         young = tracks["nobs"][rows] <= opts.probation_frames  # init counts as 1
         joint = ok & ~young
