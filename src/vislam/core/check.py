@@ -341,7 +341,7 @@ def _percentiles(d: np.ndarray) -> dict[str, float | None]:
     return {"median": float(np.median(d)), "p90": float(np.percentile(d, 90))}
 
 
-def level_velocities_to_body(u: np.ndarray, half_window: int = 10) -> np.ndarray:
+def level_velocities_to_body(u: np.ndarray, half_window: int = 25) -> np.ndarray:
     """The (T, 6) twists with levelled linear velocities (x forward, z up; see
     FilterOptions.velocity_frame) turned into a ground vehicle's body frame without an
     attitude estimate: a car moves along its body x axis, so its pitch is the grade the
