@@ -25,6 +25,7 @@ COMMAND_MODULES = [
     "vislam.cli.eval",
     "vislam.cli.report",
     "vislam.cli.sweep",
+    "vislam.cli.consistency",
     "vislam.cli.info",
     "vislam.cli.check",
     "vislam.cli.simulate",

@@ -553,7 +553,8 @@ class SlamFilter(_FrozenLog, _History):
         self._velocity_var = opts.landmark_velocity_std_mps**2
         self._accel_var = opts.landmark_acceleration_std_mps2**2
         self._update = slam_update_reference if reference else slam_update
-        self.state = SlamState(np.eye(4), opts.initial_pose_covariance, lm_dim=6 if self._motion else 3)
+        self.state = SlamState(np.eye(4), opts.initial_pose_covariance, lm_dim=6 if self._motion else 3,
+                               inverse_depth=opts.landmark_parametrization == "inverse_depth" and not self._motion)
         # one row per track in progress; the drift test's per-landmark sums live there too
         self.tracks = TrackTable({"drift_sum": ((4,), np.float64, 0.0), "drift_n": ((), np.float64, 0.0)})
         self._builder = MapBuilder()

@@ -29,7 +29,7 @@ import numpy as np
 from vislam.errors import ConfigError
 
 __all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "STALL_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET",
-           "VELOCITY_ASSOCIATIONS", "DATA_CORRECTION_FIELDS", "KERNELS"]
+           "VELOCITY_ASSOCIATIONS", "DATA_CORRECTION_FIELDS", "KERNELS", "LANDMARK_PARAMETRIZATIONS"]
 
 #: The three estimators of the report, and the sliding-window smoother (vislam.core.smoother).
 MODES = ("localization", "mapping", "slam", "smoother")
@@ -41,6 +41,8 @@ REPEATED_POLICIES = ("skip", "split", "use")
 STALL_POLICIES = ("remap", "keep")
 #: EKF variants.
 EKF_VARIANTS = ("oc", "standard")
+#: Charts of the SLAM landmarks (see vislam.core.state).
+LANDMARK_PARAMETRIZATIONS = ("inverse_depth", "cartesian")
 #: Which velocity sample describes the interval between frames k and k+1: "next" (the
 #: sample of frame k+1, the KITTI convention and the default) or "current" (sample k).
 VELOCITY_ASSOCIATIONS = ("next", "current")
@@ -165,6 +167,13 @@ class FilterOptions:
     #: report's EKF equations exactly.
     ekf: str = "oc"
 
+    #: Chart of the SLAM landmarks in the state: "inverse_depth" — anchored inverse depth
+    #: (α, β, ρ) = (x/z, y/z, 1/z) in the left camera frame of the frame that initialized
+    #: the landmark, exact for a stereo observation at initialization and well behaved for
+    #: distant points — or "cartesian" (the report's position in the world). Maps and
+    #: outputs are Cartesian either way. With landmark_motion the landmarks are Cartesian.
+    landmark_parametrization: str = "inverse_depth"
+
     # --- state management ------------------------------------------------------------
     #: Keep every landmark in the SLAM state for the whole run (the report's variant;
     #: cost grows with the map). By default a landmark is marginalized when its track ends.
@@ -272,6 +281,10 @@ class FilterOptions:
             elif f.name in ("smoother_kernel", "refine_kernel"):
                 if value not in KERNELS:
                     raise ConfigError(f"{f.name} must be one of {', '.join(KERNELS)}, got {value!r}")
+            elif f.name == "landmark_parametrization":
+                if value not in LANDMARK_PARAMETRIZATIONS:
+                    raise ConfigError(f"landmark_parametrization must be one of "
+                                      f"{', '.join(LANDMARK_PARAMETRIZATIONS)}, got {value!r}")
             elif f.name == "ekf":
                 if value not in EKF_VARIANTS:
                     raise ConfigError(f"ekf must be one of {', '.join(EKF_VARIANTS)}, got {value!r}")
