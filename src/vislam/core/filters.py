@@ -58,6 +58,7 @@ from vislam.core.updaters import (
     slam_initialize_landmarks,
     slam_predict_nis,
     slam_update,
+    slam_update_iterated,
     slam_update_reference,
     static_consistency_nis,
 )
@@ -747,7 +748,11 @@ class SlamFilter(_FrozenLog, _History):
         joint = ok & ~young
         if drift and np.any(ok):
             Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
-        correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
+        if opts.update_iterations > 1 and np.any(joint):
+            correction = slam_update_iterated(state, self.model, slots[joint], z[joint], V, N_pose,
+                                              opts.update_iterations, self._update)
+        else:
+            correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
         if drift and np.any(ok):
             ok = self._drift_test(rows, ok, r, Ht, Lt, correction)
         probe = ok & young

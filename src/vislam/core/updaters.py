@@ -22,7 +22,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from vislam.core.camera import StereoCamera, dpi_dq
-from vislam.core.lie import se3_exp, se3_inverse, se3_odot
+from vislam.core.lie import se3_exp, se3_inverse, se3_log, se3_odot
 from vislam.core.state import POSE_DIM, SlamState
 
 logger = logging.getLogger(__name__)
@@ -36,6 +36,7 @@ __all__ = [
     "conditional_residual_model",
     "compress_stereo",
     "slam_update",
+    "slam_update_iterated",
     "slam_update_reference",
     "slam_initialize_landmarks",
     "mapping_update",
@@ -290,6 +291,40 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
     P -= B.T @ B  # Σ ← Σ − K S Kᵀ (a full GEMM beats SYRK + symmetrizing at these sizes)
     _apply_correction(state, dx)
     return dx[:POSE_DIM]
+
+
+def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
+                         N_pose: np.ndarray | None, iterations: int, update=None) -> np.ndarray:
+    """Iterated EKF update (Gauss-Newton on the frame's observations) in place.
+
+    Re-linearizes at the updated estimate x_i and redoes the update from the prior x₀, Σ₀::
+
+        x_{i+1} = x₀ ⊞ K_i (z − h(x_i) − H_i (x₀ ⊟ x_i)),   Σ = Σ₀ − K_i S_i K_iᵀ
+
+    (x₀ ⊟ x_i: log(μ₀ μ_i⁻¹) for the pose — the left perturbation at μ_i — and m₀ − m_i
+    for the landmarks; H_i OC-projected with ``N_pose`` when given). ``iterations`` = 1 is
+    the EKF update. ``update``: the update function (default :func:`slam_update`).
+    Returns the total pose correction ε, μ = exp(ε) μ₀.
+    """
+    update = update or slam_update
+    mu0 = state.imu_T_world.copy()
+    lm0 = state.lm_mean.copy()
+    v0 = state.v_lm_in_world.copy()
+    P0 = state.cov.copy()
+    for i in range(max(int(iterations), 1)):
+        r, Hp, Hl, in_front, _, _ = slam_predict_nis(state, model, slots, z, V, N_pose)
+        if i and not np.all(in_front):
+            break  # keep the last iterate: the next linearization point has a point behind the camera
+        if i:
+            d = np.concatenate([lm0[slots] - state.lm_mean[slots], v0[slots] - state.v_lm_in_world[slots]],
+                               axis=1)[:, :Hl.shape[2]]
+            r = r - Hp @ se3_log(mu0 @ se3_inverse(state.imu_T_world)) - np.einsum("kij,kj->ki", Hl, d)
+            state.imu_T_world = mu0.copy()
+            state.lm_mean = lm0.copy()
+            state.v_lm_in_world = v0.copy()
+            state.cov[...] = P0
+        update(state, slots, r, Hp, Hl, V)
+    return se3_log(state.imu_T_world @ se3_inverse(mu0))
 
 
 def schmidt_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
