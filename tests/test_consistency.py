@@ -120,15 +120,16 @@ def test_inverse_depth_initialization_and_jacobians(model):
     assert np.allclose(lam2 - lam, np.einsum("kij,kj->ki", G_pix, dz), atol=1e-12)
 
 
-@pytest.mark.parametrize("chart", ["inverse_depth", "cartesian"])
-def test_slam_recovers_the_simulated_drive(chart):
-    """SLAM with either landmark chart tracks a simulated drive with noisy velocities far
-    better than dead reckoning, and its map matches the true landmarks."""
+@pytest.mark.parametrize("chart,iterations", [("inverse_depth", 1), ("inverse_depth", 3)])
+def test_slam_recovers_the_simulated_drive(chart, iterations):
+    """SLAM with inverse-depth landmarks (EKF and iterated EKF; the Cartesian default is
+    tested in test_estimators) tracks a simulated drive with noisy velocities far better
+    than dead reckoning, and its map matches the true landmarks."""
     from vislam.core.estimators import run_localization, run_slam
 
-    sim = SimulationOptions(seed=2, n_frames=60, velocity_noise_mps=0.5, angular_noise_radps=0.05)
+    sim = SimulationOptions(seed=2, n_frames=40, velocity_noise_mps=0.5, angular_noise_radps=0.05)
     drive = simulate_drive(sim)
-    opts = true_noise_options(sim, FilterOptions(landmark_parametrization=chart))
+    opts = true_noise_options(sim, FilterOptions(landmark_parametrization=chart, update_iterations=iterations))
     result = run_slam(drive.sequence, opts)
     dead = run_localization(drive.sequence, opts)
     assert not result.partial
@@ -140,22 +141,22 @@ def test_slam_recovers_the_simulated_drive(chart):
     assert rms(result) < 0.2 * rms(dead)
     lm = result.landmarks
     ok = lm.status == 0
-    assert ok.sum() > 100
+    assert ok.sum() > 80
     err = np.linalg.norm(lm.p_lm_in_world[ok] - drive.p_lm_in_world[lm.ids[ok]], axis=1)
     assert np.median(err) < 0.5, f"{chart}: median landmark error {np.median(err):.2f} m"
 
 
 def test_cli_consistency_writes_json_and_figure(tmp_path, capsys):
     out = tmp_path / "cons"
-    assert main(["consistency", "--runs", "2", "--frames", "30", "--out", str(out), "--sequential", "--quiet"]) == 0
+    assert main(["consistency", "--runs", "2", "--frames", "15", "--out", str(out), "--sequential", "--quiet"]) == 0
     data = json.loads((out / "consistency.json").read_text())
     for key in ("pose_nees_mean", "landmark_nees_mean", "pose_share_inside_band", "landmark_share_inside_band",
                 "runs", "frames", "noise_told", "pose_band_95", "landmark_band_95"):
         assert key in data, key
-    assert data["runs"] == 2 and data["frames"] == 30
+    assert data["runs"] == 2 and data["frames"] == 15
     assert data["noise_told"] == {"velocity_noise_mps": 0.5, "angular_noise_radps": 0.05, "pixel_noise_px": 0.5}
     assert data["pose_nees_mean"] > 0 and 0 <= data["pose_share_inside_band"] <= 1
-    assert len(data["pose_nees_per_frame"]) == 30
+    assert len(data["pose_nees_per_frame"]) == 15
     assert (out / "consistency.png").stat().st_size > 10_000
     assert main(["consistency", "--runs", "0", "--out", str(out), "--sequential"]) != 0
     assert "--runs must be" in capsys.readouterr().err

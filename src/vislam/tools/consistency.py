@@ -261,10 +261,14 @@ def plot_consistency(path, result: ConsistencyResult) -> None:
 
     s = result.settings
     t = np.arange(result.pose_nees.size) / 10.0  # the simulator runs at 10 Hz
-    fig, axes = plt.subplots(2, 1, figsize=(9, 7), sharex=True, constrained_layout=True)
-    panels = [(axes[0], result.pose_nees, result.pose_band, 6, "pose NEES (6 dof)", "tab:blue"),
-              (axes[1], result.landmark_nees, result.landmark_band, 3, "landmark NEES (3 dof, mean over landmarks "
-               "in the state)", "tab:green")]
+    series = [(result.pose_nees, result.pose_band, 6, "pose NEES (6 dof)", "tab:blue"),
+              (result.landmark_nees, result.landmark_band, 3, "landmark NEES (3 dof, mean over landmarks in the "
+               "state)", "tab:green")]
+    series = [p for p in series if np.any(np.isfinite(p[0]))] or series[:1]  # localization: no landmarks
+    fig, axes = plt.subplots(len(series), 1, figsize=(9, 3.5 * len(series) + 0.5), sharex=True,
+                             constrained_layout=True, squeeze=False)
+    axes = axes[:, 0]
+    panels = [(ax, *p) for ax, p in zip(axes, series)]
     n = len(result.seeds)
     for ax, values, band, dof, label, color in panels:
         ok = np.isfinite(values) & (values > 0)
@@ -281,7 +285,7 @@ def plot_consistency(path, result: ConsistencyResult) -> None:
         ax.set_ylabel("NEES (dimensionless)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(loc="upper left", fontsize=8)
-    axes[1].set_xlabel("time since the first frame (s)")
+    axes[-1].set_xlabel("time since the first frame (s)")
     told = result.options_told
     fig.suptitle(f"Filter consistency, {s.mode}, {n} simulated drives x {s.frames} frames; filter told "
                  f"{'the true noise' if s.filter_noise == 'true' else 'its own noise'}: "
