@@ -26,6 +26,7 @@ COMMAND_MODULES = [
     "vislam.cli.report",
     "vislam.cli.sweep",
     "vislam.cli.tune",
+    "vislam.cli.consistency",
     "vislam.cli.info",
     "vislam.cli.check",
     "vislam.cli.simulate",

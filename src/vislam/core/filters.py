@@ -58,6 +58,7 @@ from vislam.core.updaters import (
     slam_initialize_landmarks,
     slam_predict_nis,
     slam_update,
+    slam_update_iterated,
     slam_update_reference,
     static_consistency_nis,
 )
@@ -555,7 +556,8 @@ class SlamFilter(_FrozenLog, _History):
         self._velocity_var = opts.landmark_velocity_std_mps**2
         self._accel_var = opts.landmark_acceleration_std_mps2**2
         self._update = slam_update_reference if reference else slam_update
-        self.state = SlamState(np.eye(4), opts.initial_pose_covariance, lm_dim=6 if self._motion else 3)
+        self.state = SlamState(np.eye(4), opts.initial_pose_covariance, lm_dim=6 if self._motion else 3,
+                               inverse_depth=opts.landmark_parametrization == "inverse_depth" and not self._motion)
         # one row per track in progress; the drift test's per-landmark sums live there too
         self.tracks = TrackTable({"drift_sum": ((4,), np.float64, 0.0), "drift_n": ((), np.float64, 0.0)})
         self._builder = MapBuilder()
@@ -764,7 +766,11 @@ class SlamFilter(_FrozenLog, _History):
         joint = ok & ~young
         if drift and np.any(ok):
             Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
-        correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
+        if opts.update_iterations > 1 and np.any(joint):
+            correction = slam_update_iterated(state, self.model, slots[joint], z[joint], V, N_pose,
+                                              opts.update_iterations, self._update)
+        else:
+            correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
         if drift and np.any(ok):
             ok = self._drift_test(rows, ok, r, Ht, Lt, correction)
         probe = ok & young

@@ -4,9 +4,21 @@ Variables (the report's):
 
 * the **inverse IMU pose** ``imu_T_world`` (4x4 mean ``μ``), perturbed on the **left**:
   ``imu_T_world = exp(δ^) μ``, δ = (ρ, φ) in the (v, ω) order of :mod:`vislam.core.lie`;
-* the positions ``p_lm_in_world`` (3 each, additive perturbation) of the landmarks
-  currently in the state — and, with the landmark motion model (the report's proposed
-  fix for moving landmarks), their velocities ``v_lm_in_world`` (3 more each).
+* three parameters per landmark currently in the state (``lm_mean``, additive
+  perturbation), in one of two charts:
+
+  - **Cartesian** (the report's): the position ``p_lm_in_world`` itself;
+  - **anchored inverse depth** (``inverse_depth=True``): λ = (α, β, ρ) = (x/z, y/z, 1/z)
+    of the point in its *anchor* camera frame, a constant of the landmark
+    (``world_T_anchor``: the left camera pose estimated when it was initialized), so
+    ``p_lm_in_world = world_T_anchor · (α, β, 1)/ρ``. A stereo observation is linear
+    in λ at initialization (α, β, ρ are pixel coordinates and disparity scaled), so its
+    Gaussian is exact there, and points far away (ρ → 0) stay well described;
+    :attr:`p_lm_in_world` and :meth:`landmark_cov` convert to Cartesian
+    (the covariance to first order);
+
+  and, with the landmark motion model (the report's proposed fix for moving
+  landmarks; Cartesian only), their velocities ``v_lm_in_world`` (3 more each).
 
 Covariance layout: one symmetric matrix Σ of size ``n = 6 + d L`` for ``L`` landmarks of
 ``d = lm_dim`` (3, or 6 with velocities) dimensions, the pose block first (rows 0:6),
@@ -22,10 +34,31 @@ import numpy as np
 
 from vislam.core.bookkeeping import sorted_lookup
 
-__all__ = ["SlamState", "POSE_DIM", "LM_DIM"]
+__all__ = ["SlamState", "POSE_DIM", "LM_DIM", "inverse_depth_to_world", "MIN_INVERSE_DEPTH"]
 
 POSE_DIM = 6
 LM_DIM = 3
+
+
+#: Smallest inverse depth (1/m) used when converting to Cartesian (ρ ≤ 0 is a point at or
+#: beyond infinity; such landmarks fail the gate and are rejected).
+MIN_INVERSE_DEPTH = 1e-6
+
+
+def inverse_depth_to_world(lam: np.ndarray, world_T_anchor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(k, 3) world points and (k, 3, 3) Jacobians dp/dλ of anchored inverse-depth
+    parameters λ = (α, β, ρ): ``p = R_wa (α, β, 1)/ρ + t_wa``,
+    dp/dα = R_wa e₁/ρ, dp/dβ = R_wa e₂/ρ, dp/dρ = −R_wa (α, β, 1)/ρ²."""
+    lam = np.asarray(lam, dtype=np.float64).reshape(-1, 3)
+    R = world_T_anchor[:, :3, :3]
+    rho = np.maximum(lam[:, 2], MIN_INVERSE_DEPTH)
+    bearing = np.stack([lam[:, 0], lam[:, 1], np.ones(lam.shape[0])], axis=1)
+    p = np.einsum("kij,kj->ki", R, bearing) / rho[:, None] + world_T_anchor[:, :3, 3]
+    J = np.empty((lam.shape[0], 3, 3))
+    J[:, :, 0] = R[:, :, 0] / rho[:, None]
+    J[:, :, 1] = R[:, :, 1] / rho[:, None]
+    J[:, :, 2] = -np.einsum("kij,kj->ki", R, bearing) / (rho * rho)[:, None]
+    return p, J
 
 
 class SlamState:
@@ -35,10 +68,14 @@ class SlamState:
     GROWTH = 1.25
 
     def __init__(self, imu_T_world: np.ndarray, pose_covariance: np.ndarray, capacity_landmarks: int = 64,
-                 lm_dim: int = LM_DIM):
+                 lm_dim: int = LM_DIM, inverse_depth: bool = False):
         if lm_dim not in (3, 6):
             raise ValueError("lm_dim must be 3 (position) or 6 (position and velocity)")
+        if inverse_depth and lm_dim != 3:
+            raise ValueError("the inverse-depth chart has no landmark velocities (lm_dim 3 only)")
         self.lm_dim = lm_dim
+        #: Landmarks in the anchored inverse-depth chart (else Cartesian).
+        self.inverse_depth = bool(inverse_depth)
         self.imu_T_world = np.array(imu_T_world, dtype=np.float64)
         cap = POSE_DIM + lm_dim * max(int(capacity_landmarks), 1)
         self._buffer = np.zeros((cap, cap))
@@ -46,8 +83,11 @@ class SlamState:
         self.n_landmarks = 0
         #: (L,) dataset id of the landmark in each slot.
         self.landmark_ids = np.zeros(0, dtype=np.int64)
-        #: (L, 3) mean position of the landmark in each slot.
-        self.p_lm_in_world = np.zeros((0, 3))
+        #: (L, 3) mean parameters of the landmark in each slot (the Cartesian position,
+        #: or (α, β, ρ) in the inverse-depth chart).
+        self.lm_mean = np.zeros((0, 3))
+        #: (L, 4, 4) world_T_anchor of each landmark (inverse-depth chart; identity otherwise).
+        self.world_T_anchor = np.zeros((0, 4, 4))
         #: (L, 3) mean velocity (zero and unused without the motion model).
         self.v_lm_in_world = np.zeros((0, 3))
         #: (L, d, 6) block of each landmark in the unobservable directions (the global
@@ -101,14 +141,16 @@ class SlamState:
         self._buffer = buf
 
     def add_landmarks(self, ids: np.ndarray, p_lm_in_world: np.ndarray, cross_cov: np.ndarray,
-                      new_cov: np.ndarray, null_blocks: np.ndarray | None = None) -> np.ndarray:
+                      new_cov: np.ndarray, null_blocks: np.ndarray | None = None,
+                      world_T_anchor: np.ndarray | None = None) -> np.ndarray:
         """Append k landmarks and return their slots.
 
         Args:
             ids: (k,) dataset ids (not already in the state).
-            p_lm_in_world: (k, 3) means.
+            p_lm_in_world: (k, 3) means (in the state's chart: (α, β, ρ) with inverse depth).
             cross_cov: (dk, n) covariance between the new landmarks and the current state.
             new_cov: (dk, dk) covariance among the new landmarks.
+            world_T_anchor: (k, 4, 4) anchor camera poses (inverse-depth chart only).
         """
         k = len(ids)
         if k == 0:
@@ -122,7 +164,13 @@ class SlamState:
         buf[n:m, n:m] = 0.5 * (new_cov + new_cov.T)
         slots = np.arange(self.n_landmarks, self.n_landmarks + k)
         self.landmark_ids = np.concatenate([self.landmark_ids, np.asarray(ids, dtype=np.int64)])
-        self.p_lm_in_world = np.concatenate([self.p_lm_in_world, np.asarray(p_lm_in_world, dtype=np.float64)])
+        self.lm_mean = np.concatenate([self.lm_mean, np.asarray(p_lm_in_world, dtype=np.float64)])
+        if world_T_anchor is None:
+            if self.inverse_depth:
+                raise ValueError("inverse-depth landmarks need their world_T_anchor")
+            world_T_anchor = np.broadcast_to(np.eye(4), (k, 4, 4))
+        self.world_T_anchor = np.concatenate([self.world_T_anchor,
+                                              np.asarray(world_T_anchor, dtype=np.float64).reshape(k, 4, 4)])
         self.v_lm_in_world = np.concatenate([self.v_lm_in_world, np.zeros((k, 3))])
         if null_blocks is None:
             null_blocks = np.zeros((k, self.lm_dim, 6))
@@ -149,16 +197,36 @@ class SlamState:
         # Compact in place: Σ' = Σ[keep, keep] (the fancy index makes a copy first).
         self._buffer[:m, :m] = self._buffer[:n, :n][np.ix_(keep_rows, keep_rows)]
         self.landmark_ids = self.landmark_ids[keep_slot]
-        self.p_lm_in_world = self.p_lm_in_world[keep_slot]
+        self.lm_mean = self.lm_mean[keep_slot]
+        self.world_T_anchor = self.world_T_anchor[keep_slot]
         self.v_lm_in_world = self.v_lm_in_world[keep_slot]
         self.lm_null = self.lm_null[keep_slot]
         self.n_landmarks = int(keep_slot.sum())
         self._reindex()
 
-    def landmark_cov(self, slots: np.ndarray) -> np.ndarray:
-        """(k, 3, 3) marginal covariances of the positions of the landmarks in ``slots``."""
+    @property
+    def p_lm_in_world(self) -> np.ndarray:
+        """(L, 3) mean positions of the landmarks in the world (m). Cartesian chart: the
+        state's own array (writes go to the state); inverse depth: converted (a copy)."""
+        if not self.inverse_depth:
+            return self.lm_mean
+        return inverse_depth_to_world(self.lm_mean, self.world_T_anchor)[0]
+
+    def param_cov(self, slots: np.ndarray) -> np.ndarray:
+        """(k, 3, 3) marginal covariances of the state's 3 parameters of each landmark in
+        ``slots`` (the chart's own: position, or (α, β, ρ))."""
         rows = self.landmark_rows(slots)[:, :3]
         return self.cov[rows[:, :, None], rows[:, None, :]]
+
+    def landmark_cov(self, slots: np.ndarray) -> np.ndarray:
+        """(k, 3, 3) marginal covariances of the positions of the landmarks in ``slots``
+        (m²; inverse depth: J Σ_λ Jᵀ with J = dp/dλ at the mean)."""
+        cov = self.param_cov(slots)
+        if not self.inverse_depth:
+            return cov
+        slots = np.asarray(slots, dtype=np.int64)
+        _, J = inverse_depth_to_world(self.lm_mean[slots], self.world_T_anchor[slots])
+        return J @ cov @ np.swapaxes(J, 1, 2)
 
     def predict_landmarks(self, tau: float, accel_var: float) -> None:
         """Constant-velocity prediction of every landmark (motion model, lm_dim 6)::
@@ -168,7 +236,7 @@ class SlamState:
         """
         if self.lm_dim != 6 or self.n_landmarks == 0:
             return
-        self.p_lm_in_world = self.p_lm_in_world + tau * self.v_lm_in_world
+        self.lm_mean = self.lm_mean + tau * self.v_lm_in_world
         P = self.cov
         rows = self.landmark_rows(np.arange(self.n_landmarks))
         pos, vel = rows[:, :3].ravel(), rows[:, 3:].ravel()
@@ -180,7 +248,7 @@ class SlamState:
         n = self.dim
         return bool(
             np.all(np.isfinite(self.imu_T_world))
-            and np.all(np.isfinite(self.p_lm_in_world))
+            and np.all(np.isfinite(self.lm_mean))
             and np.all(np.isfinite(self.v_lm_in_world))
             and np.all(np.isfinite(self._buffer[:n, :n]))
         )

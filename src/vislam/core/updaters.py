@@ -22,7 +22,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from vislam.core.camera import StereoCamera, dpi_dq
-from vislam.core.lie import se3_exp, se3_inverse, se3_odot
+from vislam.core.lie import se3_exp, se3_inverse, se3_log, se3_odot
 from vislam.core.state import POSE_DIM, SlamState
 
 logger = logging.getLogger(__name__)
@@ -36,6 +36,7 @@ __all__ = [
     "conditional_residual_model",
     "compress_stereo",
     "slam_update",
+    "slam_update_iterated",
     "slam_update_reference",
     "slam_initialize_landmarks",
     "mapping_update",
@@ -55,27 +56,48 @@ class StereoModel:
         # initialization must invert exactly what the observation model applies
         self.imu_T_cam = np.linalg.inv(self.cam_T_imu)
 
-    def predict(self, imu_T_world: np.ndarray, p_lm_in_world: np.ndarray, with_pose_jacobian: bool = True):
+    def predict(self, imu_T_world: np.ndarray, p_lm_in_world: np.ndarray, with_pose_jacobian: bool = True,
+                world_T_anchor: np.ndarray | None = None):
         """Predicted observations and Jacobians for k landmarks.
+
+        ``world_T_anchor`` (k, 4, 4): the landmarks are anchored inverse-depth parameters
+        λ = (α, β, ρ) (see :mod:`vislam.core.state`), whose homogeneous world point is
+        ``m_h = world_T_anchor (α, β, 1, ρ)`` (the Cartesian point scaled by ρ, which the
+        projection ignores); then ``H_lm = M dπ/dq(q) cam_T_imu μ world_T_anchor E`` with
+        E the columns of α, β and ρ, and H_pose the same formula with the scaled m_h.
 
         Returns:
             z_hat: (k, 4) predicted pixels (rows with ``in_front`` False are garbage).
             H_pose: (k, 4, 6) or None.
             H_lm: (k, 4, 3).
-            in_front: (k,) bool, q_z > 0 (only those can be linearized).
+            in_front: (k,) bool, q_z > 0 (only those can be linearized; inverse depth:
+                also ρ > 0).
         """
         k = p_lm_in_world.shape[0]
         m_h = np.empty((k, 4))
-        m_h[:, :3] = p_lm_in_world
-        m_h[:, 3] = 1.0
+        if world_T_anchor is None:
+            m_h[:, :3] = p_lm_in_world
+            m_h[:, 3] = 1.0
+        else:
+            lam_h = np.empty((k, 4))
+            lam_h[:, :2] = p_lm_in_world[:, :2]
+            lam_h[:, 2] = 1.0
+            lam_h[:, 3] = p_lm_in_world[:, 2]
+            m_h = np.einsum("kij,kj->ki", world_T_anchor, lam_h)  # world_T_anchor (α, β, 1, ρ)
         cam_T_world = self.cam_T_imu @ imu_T_world
         q = m_h @ cam_T_world.T  # q = cam_T_imu μ m
         in_front = q[:, 2] > 1e-6
+        if world_T_anchor is not None:
+            in_front &= m_h[:, 3] > 0
         q_safe = q.copy()
         q_safe[~in_front, 2] = 1.0
         J = self.M @ dpi_dq(q_safe)  # M dπ/dq(q)   (k, 4, 4)
         z_hat = (q_safe / q_safe[:, 2:3]) @ self.M.T  # M π(q)
-        H_lm = J[:, :, :3] @ cam_T_world[:3, :3]  # M dπ/dq cam_T_imu μ Pᵀ
+        if world_T_anchor is None:
+            H_lm = J[:, :, :3] @ cam_T_world[:3, :3]  # M dπ/dq cam_T_imu μ Pᵀ
+        else:
+            A = cam_T_world @ world_T_anchor  # cam_T_anchor of each landmark
+            H_lm = J @ A[:, :, [0, 1, 3]]  # M dπ/dq cam_T_imu μ world_T_anchor [e1 e2 e4]
         H_pose = None
         if with_pose_jacobian:
             q_imu = m_h @ imu_T_world.T  # μ m
@@ -129,7 +151,8 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
     Returns (r, H_pose, H_lm, in_front, nis, blocks); NIS is +inf where the landmark
     is behind the camera; blocks = (Σ_pp, Σ_ps, Σ_ss) of the prior.
     """
-    z_hat, Hp, Hl, in_front = model.predict(state.imu_T_world, state.p_lm_in_world[slots])
+    anchors = state.world_T_anchor[slots] if state.inverse_depth else None
+    z_hat, Hp, Hl, in_front = model.predict(state.imu_T_world, state.lm_mean[slots], world_T_anchor=anchors)
     if state.lm_dim == 6:  # the observation does not depend on the velocity
         Hl = np.concatenate([Hl, np.zeros_like(Hl)], axis=2)
     if N_pose is not None:
@@ -191,7 +214,7 @@ def _apply_correction(state: SlamState, dx: np.ndarray) -> None:
     state.imu_T_world = se3_exp(dx[:POSE_DIM]) @ state.imu_T_world
     if state.n_landmarks:
         d_lm = dx[POSE_DIM:].reshape(state.n_landmarks, state.lm_dim)
-        state.p_lm_in_world = state.p_lm_in_world + d_lm[:, :3]
+        state.lm_mean = state.lm_mean + d_lm[:, :3]
         if state.lm_dim == 6:
             state.v_lm_in_world = state.v_lm_in_world + d_lm[:, 3:]
 
@@ -270,6 +293,40 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
     return dx[:POSE_DIM]
 
 
+def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
+                         N_pose: np.ndarray | None, iterations: int, update=None) -> np.ndarray:
+    """Iterated EKF update (Gauss-Newton on the frame's observations) in place.
+
+    Re-linearizes at the updated estimate x_i and redoes the update from the prior x₀, Σ₀::
+
+        x_{i+1} = x₀ ⊞ K_i (z − h(x_i) − H_i (x₀ ⊟ x_i)),   Σ = Σ₀ − K_i S_i K_iᵀ
+
+    (x₀ ⊟ x_i: log(μ₀ μ_i⁻¹) for the pose — the left perturbation at μ_i — and m₀ − m_i
+    for the landmarks; H_i OC-projected with ``N_pose`` when given). ``iterations`` = 1 is
+    the EKF update. ``update``: the update function (default :func:`slam_update`).
+    Returns the total pose correction ε, μ = exp(ε) μ₀.
+    """
+    update = update or slam_update
+    mu0 = state.imu_T_world.copy()
+    lm0 = state.lm_mean.copy()
+    v0 = state.v_lm_in_world.copy()
+    P0 = state.cov.copy()
+    for i in range(max(int(iterations), 1)):
+        r, Hp, Hl, in_front, _, _ = slam_predict_nis(state, model, slots, z, V, N_pose)
+        if i and not np.all(in_front):
+            break  # keep the last iterate: the next linearization point has a point behind the camera
+        if i:
+            d = np.concatenate([lm0[slots] - state.lm_mean[slots], v0[slots] - state.v_lm_in_world[slots]],
+                               axis=1)[:, :Hl.shape[2]]
+            r = r - Hp @ se3_log(mu0 @ se3_inverse(state.imu_T_world)) - np.einsum("kij,kj->ki", Hl, d)
+            state.imu_T_world = mu0.copy()
+            state.lm_mean = lm0.copy()
+            state.v_lm_in_world = v0.copy()
+            state.cov[...] = P0
+        update(state, slots, r, Hp, Hl, V)
+    return se3_log(state.imu_T_world @ se3_inverse(mu0))
+
+
 def schmidt_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
                    V: np.ndarray) -> None:
     """Update only the landmarks in ``slots``; the pose and every other landmark are
@@ -302,7 +359,7 @@ def schmidt_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.nd
     P[:, A] = P[A, :].T
     d = state.lm_dim
     dx = dxA.reshape(k, d)
-    state.p_lm_in_world[slots] += dx[:, :3]
+    state.lm_mean[slots] += dx[:, :3]
     if d == 6:
         state.v_lm_in_world[slots] += dx[:, 3:]
 
@@ -348,6 +405,45 @@ def _init_geometry(model: StereoModel, imu_T_world: np.ndarray, pixels: np.ndarr
     return p_w, G_pose, G_pix
 
 
+def _init_geometry_inverse_depth(model: StereoModel, imu_T_world: np.ndarray, pixels: np.ndarray):
+    """Anchored inverse-depth initialization: (λ (k, 3), G_pose (k, 3, 6), G_pix (k, 3, 4),
+    world_T_anchor (k, 4, 4)).
+
+    The anchor is the left camera at the current estimate, ``world_T_anchor = μ⁻¹
+    imu_T_cam`` (a constant of the landmark), so λ = (x/z, y/z, 1/z) of the stereo point
+    p_c in the left camera — linear in the pixels::
+
+        α = (uL − cu)/fsu,   β = (vL − cv)/fsv,   ρ = (uL − uR)/(fsu b)
+
+    With the true pose T = exp(δ^) μ the point in the anchor frame is
+    q_A = cam_T_imu exp(−δ^) imu_T_cam p_c, so dλ/dδ = −dg/dq(p_c) [cam_T_imu (imu_T_cam p_c)^⊙]_{0:3}
+    with g(q) = (q_x/q_z, q_y/q_z, 1/q_z).
+    """
+    cam = model.camera
+    pixels = np.asarray(pixels, dtype=np.float64)
+    k = pixels.shape[0]
+    fsu, fsv, cu, cv, b = cam.fsu, cam.fsv, cam.cu, cam.cv, cam.baseline_m
+    lam = np.stack([(pixels[:, 0] - cu) / fsu, (pixels[:, 1] - cv) / fsv,
+                    (pixels[:, 0] - pixels[:, 2]) / (fsu * b)], axis=1)
+    G_pix = np.zeros((k, 3, 4))
+    G_pix[:, 0, 0] = 1.0 / fsu
+    G_pix[:, 1, 1] = 1.0 / fsv
+    G_pix[:, 2, 0] = 1.0 / (fsu * b)
+    G_pix[:, 2, 2] = -1.0 / (fsu * b)
+    p_c = cam.triangulate(pixels)
+    p_i = p_c @ model.imu_T_cam[:3, :3].T + model.imu_T_cam[:3, 3]  # imu_T_cam p_c
+    dq = -(model.cam_T_imu @ se3_odot(p_i))[:, :3, :]  # dq_A/dδ  (k, 3, 6)
+    z = p_c[:, 2]
+    dg = np.zeros((k, 3, 3))  # dg/dq at p_c
+    dg[:, 0, 0] = 1.0 / z
+    dg[:, 0, 2] = -p_c[:, 0] / z**2
+    dg[:, 1, 1] = 1.0 / z
+    dg[:, 1, 2] = -p_c[:, 1] / z**2
+    dg[:, 2, 2] = -1.0 / z**2
+    world_T_anchor = se3_inverse(imu_T_world) @ model.imu_T_cam
+    return lam, dg @ dq, G_pix, np.broadcast_to(world_T_anchor, (k, 4, 4)).copy()
+
+
 def slam_initialize_landmarks(state: SlamState, model: StereoModel, ids: np.ndarray, pixels: np.ndarray,
                               V: np.ndarray, N_pose: np.ndarray | None = None,
                               velocity_var: float = 0.0) -> np.ndarray:
@@ -363,7 +459,11 @@ def slam_initialize_landmarks(state: SlamState, model: StereoModel, ids: np.ndar
     k = len(ids)
     if k == 0:
         return np.zeros(0, dtype=np.int64)
-    p_w, G_pose, G_pix = _init_geometry(model, state.imu_T_world, pixels)
+    anchors = None
+    if state.inverse_depth:
+        p_w, G_pose, G_pix, anchors = _init_geometry_inverse_depth(model, state.imu_T_world, pixels)
+    else:
+        p_w, G_pose, G_pix = _init_geometry(model, state.imu_T_world, pixels)
     d = state.lm_dim
     if d == 6:  # velocity rows: prior N(0, velocity_var I), independent of the rest
         G_pose = np.concatenate([G_pose, np.zeros_like(G_pose)], axis=1)
@@ -377,7 +477,7 @@ def slam_initialize_landmarks(state: SlamState, model: StereoModel, ids: np.ndar
         if d == 6:
             new[d * i + 3:d * i + 6, d * i + 3:d * i + 6] += velocity_var * np.eye(3)
     null = G_pose @ N_pose if N_pose is not None else None  # N_m = G_p N_pose (velocity: 0)
-    return state.add_landmarks(ids, p_w, cross, new, null)
+    return state.add_landmarks(ids, p_w, cross, new, null, anchors)
 
 
 def static_consistency_nis(model: StereoModel, imu_T_world_now: np.ndarray, z_now: np.ndarray,
