@@ -188,7 +188,9 @@ def run_tune(source, engine=None, base: Mapping[str, Any] | None = None, frames:
     notes = []
     for name, (lo, hi) in ((n, getattr(search.space, n)) for n in TUNED_FIELDS):
         value = best.candidate.to_dict()[name]
-        if value <= lo * 1.0001 or value >= hi * 0.9999:
+        if lo == hi:
+            notes.append(f"{name} = {value:g} kept (not searched)")
+        elif value <= lo * 1.0001 or value >= hi * 0.9999:
             notes.append(f"{name} = {value:g} is at the edge of the searched range [{lo:g}, {hi:g}]")
     return TuneResult(str(source) if source is not None else sequence.name, best, scores, i, check,
                       options_dict(base), frames, nu, search.space, engine.name, time.perf_counter() - t0, notes)
