@@ -107,6 +107,7 @@ class FilterOptions:
     #: 2.72 / 2.56, 2.79 / 2.44; worst run 5.75, 5.22, 5.45 m). Sparse 0020 / 0027 the same
     #: for all; simulator pose NEES 24 -> 14 from 60 to 200 m (8 x 150 frames). The 2 px
     #: disparity guard stops at about 190 m on KITTI, so 200 m leaves depth to it.
+    #: Rerun: ``PYTHONPATH=src python benchmarks/noise_draws.py --depths 60,100,200``.
     max_depth_m: float = 200.0
     #: Smallest triangulated depth (m) accepted for a new landmark.
     min_depth_m: float = 0.5
