@@ -137,16 +137,12 @@ def _recorded_truth(drive):
     """The true twists as the simulator records them: linear velocities in the levelled
     frame of the interval's start (velocity_frame: level), angular in the IMU frame."""
     from vislam.core.lie import se3_inverse
-    from vislam.core.propagation import level_to_body
+    from vislam.core.propagation import body_to_level
 
     u = drive.true_velocities.copy()
     if drive.options.velocity_frame == "level":
-        for k in range(len(u)):
-            imu_T_world = se3_inverse(drive.world_T_imu[max(k - 1, 0)])
-            # level_to_body is a rotation: find v_level with level_to_body(v_level) = v_body
-            R = level_to_body(imu_T_world, np.eye(3)[:, 0]), level_to_body(imu_T_world, np.eye(3)[:, 1]), \
-                level_to_body(imu_T_world, np.eye(3)[:, 2])
-            u[k, :3] = np.column_stack(R).T @ drive.true_velocities[k, :3]
+        start = se3_inverse(drive.world_T_imu[np.maximum(np.arange(len(u)) - 1, 0)])
+        u[:, :3] = body_to_level(start, drive.true_velocities[:, :3])
     return u
 
 

@@ -374,7 +374,7 @@ def vehicle_axes(u: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     if np.linalg.norm(fwd) < 0.5:
         return None
     fwd /= np.linalg.norm(fwd)
-    evals, evecs = np.linalg.eigh(np.cov(w.T))
+    _, evecs = np.linalg.eigh(np.cov(w.T))
     up = evecs[:, -1] - fwd * (evecs[:, -1] @ fwd)
     if np.linalg.norm(up) < 0.5:
         return None

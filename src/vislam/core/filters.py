@@ -43,7 +43,7 @@ import numpy as np
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
 from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
-from vislam.core.propagation import level_to_body, predict_pose, predict_state
+from vislam.core.propagation import body_twist, predict_pose, predict_state
 from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
 from vislam.core.sequence import Calibration, Frame
 from vislam.core.stalls import StallRemapBuffer
@@ -246,9 +246,7 @@ class LocalizationFilter(_History):
     def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
         """μ ← exp(−τ û) μ,  Σ ← F Σ Fᵀ + τ² W  (the report's eq. for the IMU prediction)."""
         tau = _check_dt(dt_s)
-        u = _twist(linear_velocity, angular_velocity)
-        if self.options.velocity_frame == "level":
-            u[:3] = level_to_body(self.imu_T_world, u[:3])
+        u = body_twist(_twist(linear_velocity, angular_velocity), self.imu_T_world, self.options.velocity_frame)
         self.imu_T_world, self._pose_cov, _ = predict_pose(self.imu_T_world, self._pose_cov, tau, u, self._W)
 
     def update(self, ids=None, pixels=None) -> FrameStats:
@@ -606,9 +604,8 @@ class SlamFilter(_FrozenLog, _History):
         if self.stall_buffer is not None and self.stall_buffer.n_pending:
             frames = self.stall_buffer.pending_frames()
             for frame in frames[1:] if self._t < 0 else frames:  # the first frame has no prediction
-                u = _twist(frame.linear_velocity_mps, frame.angular_velocity_radps)
-                if self.options.velocity_frame == "level":
-                    u[:3] = level_to_body(mean, u[:3])
+                u = body_twist(_twist(frame.linear_velocity_mps, frame.angular_velocity_radps), mean,
+                               self.options.velocity_frame)
                 mean = se3_exp(-frame.dt_s * u) @ mean
         return se3_inverse(mean)
 
@@ -678,9 +675,7 @@ class SlamFilter(_FrozenLog, _History):
         motion model, m ← m + τ v for every landmark.)"""
         self._require_healthy()
         tau = _check_dt(dt_s)
-        u = _twist(linear_velocity, angular_velocity)
-        if self.options.velocity_frame == "level":
-            u[:3] = level_to_body(self.state.imu_T_world, u[:3])
+        u = body_twist(_twist(linear_velocity, angular_velocity), self.state.imu_T_world, self.options.velocity_frame)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None)
             if self._motion:

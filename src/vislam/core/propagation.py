@@ -23,20 +23,45 @@ import numpy as np
 from vislam.core.lie import se3_adjoint, se3_exp
 from vislam.core.sequence import Sequence
 
-__all__ = ["motion_increments", "predict_pose", "predict_state", "dead_reckoning", "level_to_body"]
+__all__ = ["motion_increments", "predict_pose", "predict_state", "dead_reckoning", "level_to_body", "body_to_level", "body_twist"]
+
+
+def _rotate_z(psi: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rz(ψ) v, batched over leading axes."""
+    c, s = np.cos(psi), np.sin(psi)
+    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1], v[..., 2]], axis=-1)
 
 
 def level_to_body(imu_T_world: np.ndarray, linear_velocity: np.ndarray) -> np.ndarray:
     """A linear velocity given in the level frame (heading-aligned: x forward and y left
     in the horizontal plane, z up; the world z axis is up) expressed in the body frame
     of the pose ``imu_T_world``: v_body = R_bw · Rz(ψ) · v_level, with ψ the body's
-    heading (the world-frame direction of its x axis in the horizontal plane)."""
-    R_bw = imu_T_world[:3, :3]
-    psi = np.arctan2(R_bw[0, 1], R_bw[0, 0])  # world_R_imu[1, 0], world_R_imu[0, 0]
-    c, s = np.cos(psi), np.sin(psi)
-    v = np.asarray(linear_velocity, dtype=np.float64)
-    v_world = np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])  # Rz(ψ) v
-    return R_bw @ v_world
+    heading (the world-frame direction of its x axis in the horizontal plane). Batched
+    over leading axes ((..., 4, 4) poses, (..., 3) velocities); :func:`body_to_level`
+    is its inverse."""
+    R_bw = imu_T_world[..., :3, :3]
+    psi = np.arctan2(R_bw[..., 0, 1], R_bw[..., 0, 0])  # world_R_imu[1, 0], world_R_imu[0, 0]
+    v_world = _rotate_z(psi, np.asarray(linear_velocity, dtype=np.float64))  # Rz(ψ) v
+    return np.matmul(R_bw, v_world[..., None])[..., 0]
+
+
+def body_to_level(imu_T_world: np.ndarray, linear_velocity: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`level_to_body`: v_level = Rz(ψ)ᵀ · R_bwᵀ · v_body (batched)."""
+    R_bw = imu_T_world[..., :3, :3]
+    psi = np.arctan2(R_bw[..., 0, 1], R_bw[..., 0, 0])
+    v_world = np.matmul(np.swapaxes(R_bw, -1, -2), np.asarray(linear_velocity, dtype=np.float64)[..., None])[..., 0]
+    return _rotate_z(-psi, v_world)
+
+
+def body_twist(u: np.ndarray, imu_T_world: np.ndarray, velocity_frame: str) -> np.ndarray:
+    """The twist u = (v, ω) with its linear velocity in the body frame of the pose
+    ``imu_T_world`` (FilterOptions.velocity_frame: "level" turns it with
+    :func:`level_to_body`; "body" returns ``u`` itself)."""
+    if velocity_frame != "level":
+        return u
+    out = np.array(u, dtype=np.float64)
+    out[:3] = level_to_body(imu_T_world, out[:3])
+    return out
 
 
 def motion_increments(sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
@@ -90,9 +115,7 @@ def dead_reckoning(sequence: Sequence, W: np.ndarray, initial_cov: np.ndarray, v
     if velocity_frame == "level":
         steps = np.empty((T - 1, 4, 4))
         for k in range(T - 1):
-            uk = u[k].copy()
-            uk[:3] = level_to_body(means[k], uk[:3])
-            steps[k] = se3_exp(-tau[k] * uk)
+            steps[k] = se3_exp(-tau[k] * body_twist(u[k], means[k], velocity_frame))
             means[k + 1] = steps[k] @ means[k]  # μ_{k+1} = exp(−τ û) μ_k
     else:
         steps = se3_exp(-tau[:, None] * u)  # exp(−τ_k û_{k+1}), batched

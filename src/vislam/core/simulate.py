@@ -74,6 +74,7 @@ import numpy as np
 
 from vislam.core.camera import StereoCamera
 from vislam.core.lie import se3_exp, se3_inverse
+from vislam.core.propagation import body_to_level
 from vislam.core.sequence import Sequence, StereoObservations, frozen_array
 from vislam.errors import ConfigError
 
@@ -1120,15 +1121,10 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
     vel_noise = streams["velocity_noise"].standard_normal((T, 6))
     sigma = np.array([opts.velocity_noise_mps] * 3 + [opts.angular_noise_radps] * 3)
     recorded = true_velocities
-    if opts.velocity_frame == "level":
+    if opts.velocity_frame == "level":  # turned with the attitude at the interval's start
         recorded = true_velocities.copy()
-        R = world_T_imu[np.maximum(np.arange(T) - 1, 0), :3, :3]  # world_R_imu at the interval's start
-        psi = np.arctan2(R[:, 1, 0], R[:, 0, 0])
-        v_world = np.einsum("kij,kj->ki", R, true_velocities[:, :3])
-        c, s_ = np.cos(psi), np.sin(psi)
-        recorded[:, 0] = c * v_world[:, 0] + s_ * v_world[:, 1]  # Rz(ψ)ᵀ v_world
-        recorded[:, 1] = -s_ * v_world[:, 0] + c * v_world[:, 1]
-        recorded[:, 2] = v_world[:, 2]
+        start = world_T_imu[np.maximum(np.arange(T) - 1, 0)]
+        recorded[:, :3] = body_to_level(se3_inverse(start), true_velocities[:, :3])
     measured = recorded + sigma * vel_noise
     recorded_cam_T_imu = cam_T_imu
     if opts.has_recording_faults:

@@ -59,7 +59,7 @@ import numpy as np
 from vislam.core.bookkeeping import MapBuilder, RepeatDetector, sorted_positions
 from vislam.core.filters import FrameStats, _check_dt, _History, _observations, _StatsDelta, _twist
 from vislam.core.lie import se3_inverse
-from vislam.core.propagation import level_to_body
+from vislam.core.propagation import body_twist
 from vislam.core.options import FilterOptions
 from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
 from vislam.core.sequence import Calibration, Frame
@@ -295,9 +295,8 @@ class SmootherFilter(_History):
             self._prior_factors.append(f)
         else:
             tau, u = self._pending_odometry
-            if self.options.velocity_frame == "level":  # in the body frame of the latest estimate
-                u = u.copy()
-                u[:3] = level_to_body(se3_inverse(self._current), u[:3])
+            # the linear velocity in the body frame of the latest estimate
+            u = body_twist(u, se3_inverse(self._current), self.options.velocity_frame)
             xi = np.concatenate([u[3:], u[:3]]) * tau  # (ω, v) τ
             step = g.Pose3.Expmap(xi)
             pose = self._current @ step.matrix()
