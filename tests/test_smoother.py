@@ -197,3 +197,62 @@ def test_cli_run_smoother_with_refine(tmp_path):
     # the batch pass over the whole drive: at least as close to the truth as the smoother (small tolerance)
     assert ate(refined, sim.world_T_imu) <= 1.05 * ate(smoothed, sim.world_T_imu)
     assert main(["run", str(data), "--mode", "slam", "--refine", "--out", str(tmp_path / "x"), "--quiet"]) != 0
+
+
+def _random_pose(rng, scale=0.5):
+    from vislam.core.lie import so3_exp
+
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(rng.normal(size=3) * scale)
+    T[:3, 3] = rng.normal(size=3) * 3.0
+    return T
+
+
+@pytest.mark.parametrize("scale", [0.5, 1e-7])
+def test_level_odometry_jacobians_match_finite_differences(scale):
+    """The levelled motion factor's 6x6 Jacobians against central differences under
+    GTSAM's right perturbation (ω, v), on random and near-identity rotations."""
+    import gtsam
+
+    from vislam.core.lie import so3_exp
+    from vislam.core.smoother import level_odometry_error
+
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        Ti, Tj = _random_pose(rng, scale), _random_pose(rng, scale)
+        dR, d = so3_exp(rng.normal(size=3) * scale), rng.normal(size=3)
+        _, H_i, H_j = level_odometry_error(Ti, Tj, dR, d, jacobians=True)
+        for which, H in ((0, H_i), (1, H_j)):
+            num = np.zeros((6, 6))
+            for k in range(6):
+                xi = np.zeros(6)
+                xi[k] = 1e-6
+                plus, minus = [Ti, Tj], [Ti, Tj]
+                plus[which] = plus[which] @ gtsam.Pose3.Expmap(xi).matrix()
+                minus[which] = minus[which] @ gtsam.Pose3.Expmap(-xi).matrix()
+                num[:, k] = (level_odometry_error(*plus, dR, d) - level_odometry_error(*minus, dR, d)) / 2e-6
+            np.testing.assert_allclose(H, num, atol=1e-7)
+
+
+def test_level_odometry_ignores_roll_and_pitch():
+    """The displacement is compared in the level frame: tilting pose i about its
+    horizontal axes (world x/y turned to its heading) leaves the translation error
+    unchanged, while a change of heading turns it."""
+    from vislam.core.lie import so3_exp
+    from vislam.core.smoother import level_odometry_error
+
+    rng = np.random.default_rng(3)
+    Ti = np.eye(4)
+    Ti[:3, :3] = so3_exp(np.array([0.0, 0.0, 0.7]))  # heading 0.7 rad, level
+    Tj = _random_pose(rng)
+    d = np.array([1.0, 0.1, 0.05])
+    e0 = level_odometry_error(Ti, Tj, np.eye(3), d)
+    heading_x = Ti[:3, 0]
+    left = np.cross([0.0, 0.0, 1.0], heading_x)
+    for axis in (heading_x, left):  # roll, pitch
+        tilted = Ti.copy()
+        tilted[:3, :3] = so3_exp(0.2 * axis) @ Ti[:3, :3]
+        np.testing.assert_allclose(level_odometry_error(tilted, Tj, np.eye(3), d)[3:], e0[3:], atol=1e-12)
+    turned = Ti.copy()
+    turned[:3, :3] = so3_exp(np.array([0.0, 0.0, 0.2])) @ Ti[:3, :3]
+    assert np.abs(level_odometry_error(turned, Tj, np.eye(3), d)[3:] - e0[3:]).max() > 0.1
