@@ -123,3 +123,19 @@ def test_cli_tune_bad_input_is_one_line_exit_2(drive, tmp_path, capsys, args, ex
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and expected in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
+
+
+def test_cli_tune_rejects_a_bad_file_before_starting_workers(tmp_path, capsys, monkeypatch):
+    """A file that is not a dataset is a one-line error naming it, before any cluster starts."""
+    import vislam.tools.cluster as cluster
+
+    def no_engine(*args, **kwargs):
+        raise AssertionError("the engine was started before the data file was validated")
+
+    monkeypatch.setattr(cluster, "open_engine", no_engine)
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"this is not a zip archive")
+    assert main(["tune", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "bad.npz" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()

@@ -108,13 +108,16 @@ def run(args) -> int:
             + (f"; best so far σ_v {b.velocity_noise_mps:g} m/s, σ_ω {b.angular_noise_radps:g} rad/s, "
                f"σ_px {b.pixel_noise_px:g} px (objective {best.objective:.4f})" if b is not None else ""))
 
+    from vislam.tools.dataset_io import load_sequence
+
+    sequence = load_sequence(data)  # a bad file is a one-line error before any worker starts
     workers = 0 if args.sequential else args.workers
     configure_dask_logging(args.verbose)
     try:
         with terminate_as_interrupt(), open_engine(args.scheduler, workers) as engine:
             say(f"engine: {engine.name}; {args.data}" + (f", first {args.frames} frames" if args.frames else ""))
             result = run_tune(str(data.resolve()), engine, base=base, frames=args.frames, space=space,
-                              on_round=on_round)
+                              on_round=on_round, sequence=sequence)
     except KeyboardInterrupt:
         print("vislam tune: interrupted; nothing written", file=sys.stderr)
         return 130
