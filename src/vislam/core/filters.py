@@ -579,6 +579,9 @@ class SlamFilter(_FrozenLog, _History):
         #: Observations skipped because their landmark was rejected earlier (the
         #: observations no innovation is computed for, besides repeats and new landmarks).
         self.observations_of_rejected = 0
+        #: Updates done per frame by the iterated update (update_iterations > 1), one
+        #: entry per frame with a joint update.
+        self.update_counts: list[int] = []
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
         self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames) if opts.remaps_stalled_tracks else None
 
@@ -763,7 +766,8 @@ class SlamFilter(_FrozenLog, _History):
             Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
         if opts.update_iterations > 1 and np.any(joint):
             correction = slam_update_iterated(state, self.model, slots[joint], z[joint], V, N_pose,
-                                              opts.update_iterations, self._update)
+                                              opts.update_iterations, self._update, opts.update_iteration_tolerance,
+                                              self.update_counts)
         else:
             correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
         if drift and np.any(ok):

@@ -204,6 +204,12 @@ class FilterOptions:
     #: 3.65 against 2.48 m, 15 against 6 s of filter time), hence the default 1. With
     #: Cartesian landmarks or ekf "standard" iterating does not help.
     update_iterations: int = 1
+    #: With update_iterations > 1: stop iterating once the next re-linearization would
+    #: move the estimate by less than this many standard deviations (pose, and each
+    #: observed landmark, marginally; the step predicted to first order with the last
+    #: gain, see updaters.slam_update_iterated), so update_iterations is a maximum. 0
+    #: always does update_iterations updates.
+    update_iteration_tolerance: float = 0.0
 
     # --- state management ------------------------------------------------------------
     #: Keep every landmark in the SLAM state for the whole run (the report's variant;
