@@ -43,7 +43,7 @@ import numpy as np
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
 from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
-from vislam.core.propagation import body_twist, predict_pose, predict_state
+from vislam.core.propagation import body_twist, body_twist_jacobian, predict_pose, predict_state
 from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
 from vislam.core.sequence import Calibration, Frame
 from vislam.core.stalls import StallRemapBuffer
@@ -226,6 +226,7 @@ class LocalizationFilter(_History):
         self.calibration = calibration
         self.options = options or FilterOptions()
         self._W = self.options.W
+        self._attitude_jacobian = self.options.level_velocity_jacobian
         self.imu_T_world = np.eye(4)
         self._pose_cov = np.array(self.options.initial_pose_covariance, dtype=np.float64)
         self.stats = RunStats()
@@ -246,8 +247,11 @@ class LocalizationFilter(_History):
     def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
         """μ ← exp(−τ û) μ,  Σ ← F Σ Fᵀ + τ² W  (the report's eq. for the IMU prediction)."""
         tau = _check_dt(dt_s)
-        u = body_twist(_twist(linear_velocity, angular_velocity), self.imu_T_world, self.options.velocity_frame)
-        self.imu_T_world, self._pose_cov, _ = predict_pose(self.imu_T_world, self._pose_cov, tau, u, self._W)
+        u_in = _twist(linear_velocity, angular_velocity)
+        frame = self.options.velocity_frame
+        u = body_twist(u_in, self.imu_T_world, frame)
+        du = body_twist_jacobian(u_in, self.imu_T_world, frame) if self._attitude_jacobian else None
+        self.imu_T_world, self._pose_cov, _ = predict_pose(self.imu_T_world, self._pose_cov, tau, u, self._W, du=du)
 
     def update(self, ids=None, pixels=None) -> FrameStats:
         """Count the frame (IMU localization uses no observations)."""
@@ -547,6 +551,7 @@ class SlamFilter(_FrozenLog, _History):
         self.options = opts = options or FilterOptions()
         self.model = StereoModel(calibration.camera, calibration.cam_T_imu)
         self._V, self._W = opts.V, opts.W
+        self._attitude_jacobian = opts.level_velocity_jacobian
         self._gate = opts.gate_threshold
         self._drift_gate = opts.drift_threshold
         self._oc = opts.ekf == "oc"
@@ -678,9 +683,12 @@ class SlamFilter(_FrozenLog, _History):
         motion model, m ← m + τ v for every landmark.)"""
         self._require_healthy()
         tau = _check_dt(dt_s)
-        u = body_twist(_twist(linear_velocity, angular_velocity), self.state.imu_T_world, self.options.velocity_frame)
+        u_in = _twist(linear_velocity, angular_velocity)
+        frame = self.options.velocity_frame
+        u = body_twist(u_in, self.state.imu_T_world, frame)
+        du = body_twist_jacobian(u_in, self.state.imu_T_world, frame) if self._attitude_jacobian else None
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None)
+            predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None, du)
             if self._motion:
                 self.state.predict_landmarks(tau, self._accel_var)
         self._last_correction = np.zeros(6)  # used once: the next correction comes with the next update
