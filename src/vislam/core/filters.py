@@ -775,7 +775,7 @@ class SlamFilter(_FrozenLog, _History):
         if opts.update_iterations > 1 and np.any(joint):
             correction = slam_update_iterated(state, self.model, slots[joint], z[joint], V, N_pose,
                                               opts.update_iterations, self._update, opts.update_iteration_tolerance,
-                                              self.update_counts)
+                                              self.update_counts, (r[joint], Hp[joint], Hl[joint]))
         else:
             correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
         if drift and np.any(ok):

@@ -77,16 +77,17 @@ def body_twist_jacobian(u: np.ndarray, imu_T_world: np.ndarray, velocity_frame: 
     if velocity_frame != "level":
         return None
     v = np.asarray(u[:3], dtype=np.float64)
-    D = np.zeros((6, 6))
     h = 1e-6
-    for j in range(3):
-        e = np.zeros(3)
-        e[j] = h
-        plus, minus = imu_T_world.copy(), imu_T_world.copy()
-        plus[:3, :3] = so3_exp(e) @ imu_T_world[:3, :3]
-        minus[:3, :3] = so3_exp(-e) @ imu_T_world[:3, :3]
-        D[:3, 3 + j] = (level_to_body(plus, v) - level_to_body(minus, v)) / (2 * h)
+    poses = np.broadcast_to(imu_T_world, (6, 4, 4)).copy()  # ± h about each body axis, one batch
+    poses[:, :3, :3] = _PERTURB_ROTATIONS @ imu_T_world[:3, :3]
+    vb = level_to_body(poses, np.broadcast_to(v, (6, 3)))
+    D = np.zeros((6, 6))
+    D[:3, 3:] = (vb[:3] - vb[3:]).T / (2 * h)
     return D
+
+
+#: exp(±h e_j^), h = 1e-6 (rows: +e1, +e2, +e3, −e1, −e2, −e3), for body_twist_jacobian.
+_PERTURB_ROTATIONS = so3_exp(np.concatenate([np.eye(3), -np.eye(3)]) * 1e-6)
 
 
 def motion_increments(sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:

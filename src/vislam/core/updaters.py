@@ -329,7 +329,7 @@ def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
 
 def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
                          N_pose: np.ndarray | None, iterations: int, update=None, tolerance: float = 0.0,
-                         counts: list | None = None) -> np.ndarray:
+                         counts: list | None = None, first: tuple | None = None) -> np.ndarray:
     """Iterated EKF update (Gauss-Newton on the frame's observations) in place.
 
     Re-linearizes at the updated estimate x_i and redoes the update from the prior x₀, Σ₀::
@@ -348,7 +348,8 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     deviations (of the pose and of every observed landmark, marginally, under the
     current covariance) — the linearization at x_i then gives nothing new. A frame whose
     prior is narrow against the pixel noise costs one update and one prediction.
-    ``counts``: a list that receives the number of updates done.
+    ``counts``: a list that receives the number of updates done. ``first``: (r, H_pose,
+    H_lm) of these observations at the prior, when the caller has them already.
     Returns the total pose correction ε, μ = exp(ε) μ₀.
     """
     update = update or slam_update
@@ -362,7 +363,10 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     r_prev = None
     done = 0
     for i in range(max(int(iterations), 1)):
-        r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
+        if i == 0 and first is not None:
+            (r, Hp, Hl), in_front = first, None
+        else:
+            r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
         if i and not np.all(in_front):
             break  # keep the last iterate: the next linearization point has a point behind the camera
         if i:
