@@ -196,3 +196,56 @@ def test_iterated_update_reaches_the_map_estimate_of_one_frame(model):
             gaps[iterations].append(np.linalg.norm(se3_log(mu_map @ se3_inverse(state.imu_T_world))))
     assert max(gaps[3]) < 1e-3, gaps
     assert np.mean(gaps[1]) > 10 * np.mean(gaps[3])
+
+
+def test_adaptive_iterated_update_is_the_fixed_one_stopped_at_convergence(model):
+    """``tolerance`` > 0 (FilterOptions.update_iteration_tolerance): the iterated update
+    stops when the next re-linearization would move the estimate by less than that many
+    standard deviations. It must reach the optimum of the fixed iterated update (and be
+    exactly the fixed update with the number of updates it chose, covariance included,
+    although it rebuilds the prior covariance from the gain's factors instead of a
+    copy); with a prior narrow against the pixel noise it stops after one update, the
+    EKF update."""
+    from vislam.core.lie import se3_log
+    from vislam.core.state import SlamState
+    from vislam.core.updaters import slam_update_iterated
+
+    rng = np.random.default_rng(3)
+    k = 40
+    p_c = np.c_[rng.uniform(-10, 10, k), rng.uniform(-2, 2, k), rng.uniform(4, 40, k)]
+    p_w = (model.imu_T_cam @ np.c_[p_c, np.ones(k)].T).T[:, :3]  # true pose: identity
+
+    def fresh(mu0, P_pose, lm0):
+        state = SlamState(mu0, P_pose)
+        state.add_landmarks(np.arange(k), lm0, np.zeros((3 * k, 6)), lm_sd**2 * np.eye(3 * k))
+        return state
+
+    for wide in (True, False):
+        P_pose = np.diag([0.3**2] * 3 + [0.03**2] * 3) if wide else np.diag([1e-3**2] * 3 + [1e-4**2] * 3)
+        px, lm_sd = (0.5, 0.05) if wide else (2.0, 0.001)
+        V = px**2 * np.eye(4)
+        for trial in range(3):
+            mu0 = se3_exp(-rng.multivariate_normal(np.zeros(6), P_pose))
+            lm0 = p_w + rng.normal(0, lm_sd, p_w.shape)
+            z = model.predict(np.eye(4), p_w)[0] + rng.normal(0, px, (k, 4))
+            counts = []
+            adaptive = fresh(mu0, P_pose, lm0)
+            eps = slam_update_iterated(adaptive, model, np.arange(k), z, V, None, 10, tolerance=0.01, counts=counts)
+            assert np.allclose(se3_exp(eps) @ mu0, adaptive.imu_T_world, atol=1e-9)
+            n = counts[0]
+            if wide:
+                assert 2 <= n < 10, n  # iterates, and stops before the maximum
+                converged = fresh(mu0, P_pose, lm0)
+                slam_update_iterated(converged, model, np.arange(k), z, V, None, 10)
+                gap = se3_log(converged.imu_T_world @ se3_inverse(adaptive.imu_T_world))
+                sd = np.sqrt(np.diag(adaptive.pose_cov))
+                assert np.all(np.abs(gap) < 0.05 * sd), gap / sd  # the same optimum, within 5 % of a σ
+                lm_post_sd = np.sqrt(np.diag(adaptive.cov)[6:])
+                assert np.all(np.abs(converged.lm_mean - adaptive.lm_mean).ravel() < 0.05 * lm_post_sd)
+            else:
+                assert n == 1  # the linearization at the prior is good enough: the EKF update
+            fixed = fresh(mu0, P_pose, lm0)
+            slam_update_iterated(fixed, model, np.arange(k), z, V, None, n)
+            assert np.allclose(fixed.imu_T_world, adaptive.imu_T_world, atol=1e-10)
+            assert np.allclose(fixed.lm_mean, adaptive.lm_mean, atol=1e-10)
+            assert np.allclose(fixed.cov, adaptive.cov, atol=1e-12, rtol=1e-8)

@@ -430,3 +430,37 @@ def test_schmidt_update_leaves_pose_and_keeps_covariance_psd():
     assert np.abs(state.cov - state.cov.T).max() < 1e-12
     assert np.linalg.eigvalsh(state.cov).min() > -1e-10
     assert np.all(np.diag(state.cov)[rows.ravel()] <= np.diag(P)[rows.ravel()] + 1e-12)
+
+
+def test_level_velocity_jacobian_is_the_exact_transition():
+    """With levelled velocities the body twist depends on the estimated roll and pitch;
+    predict_pose with body_twist_jacobian's du is the exact Jacobian of the whole step
+    T ↦ exp(−τ u(T)) T (central differences), and F = Ad(exp(−τ û)) alone is not."""
+    from vislam.core.lie import se3_exp, se3_inverse, se3_log
+    from vislam.core.propagation import body_twist, body_twist_jacobian, predict_pose
+
+    rng = np.random.default_rng(0)
+    assert body_twist_jacobian(np.ones(6), np.eye(4), "body") is None
+    for _ in range(4):
+        mu = se3_exp(rng.normal(0, 0.5, 6))
+        u = np.r_[rng.normal(0, 5, 3), rng.normal(0, 0.2, 3)]
+        tau = 0.1
+
+        def step(T):
+            return se3_exp(-tau * body_twist(u, T, "level")) @ T
+
+        ub = body_twist(u, mu, "level")
+        _, _, F = predict_pose(mu, np.eye(6), tau, ub, np.eye(6), du=body_twist_jacobian(u, mu, "level"))
+        _, _, F_plain = predict_pose(mu, np.eye(6), tau, ub, np.eye(6))
+        h = 1e-6
+        F_num = np.empty((6, 6))
+        for j in range(6):
+            d = np.zeros(6)
+            d[j] = h
+            F_num[:, j] = (se3_log(step(se3_exp(d) @ mu) @ se3_inverse(step(mu)))
+                           - se3_log(step(se3_exp(-d) @ mu) @ se3_inverse(step(mu)))) / (2 * h)
+        assert np.allclose(F, F_num, atol=1e-7)
+        assert np.abs(F_plain - F_num).max() > 0.1
+        # a rotation about the vertical (heading) does not change the body twist
+        up_body = mu[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        assert np.allclose(body_twist_jacobian(u, mu, "level")[:3, 3:] @ up_body, 0, atol=1e-8)

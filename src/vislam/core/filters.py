@@ -43,7 +43,7 @@ import numpy as np
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
 from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
-from vislam.core.propagation import body_twist, predict_pose, predict_state
+from vislam.core.propagation import body_twist, body_twist_jacobian, predict_pose, predict_state
 from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
 from vislam.core.sequence import Calibration, Frame
 from vislam.core.stalls import StallRemapBuffer
@@ -243,6 +243,7 @@ class LocalizationFilter(_History):
         self.calibration = calibration
         self.options = options or FilterOptions()
         self._W = self.options.W
+        self._attitude_jacobian = self.options.level_velocity_jacobian
         self.imu_T_world = np.eye(4)
         self._pose_cov = np.array(self.options.initial_pose_covariance, dtype=np.float64)
         self.stats = RunStats()
@@ -263,8 +264,11 @@ class LocalizationFilter(_History):
     def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
         """μ ← exp(−τ û) μ,  Σ ← F Σ Fᵀ + τ² W  (the report's eq. for the IMU prediction)."""
         tau = _check_dt(dt_s)
-        u = body_twist(_twist(linear_velocity, angular_velocity), self.imu_T_world, self.options.velocity_frame)
-        self.imu_T_world, self._pose_cov, _ = predict_pose(self.imu_T_world, self._pose_cov, tau, u, self._W)
+        u_in = _twist(linear_velocity, angular_velocity)
+        frame = self.options.velocity_frame
+        u = body_twist(u_in, self.imu_T_world, frame)
+        du = body_twist_jacobian(u_in, self.imu_T_world, frame) if self._attitude_jacobian else None
+        self.imu_T_world, self._pose_cov, _ = predict_pose(self.imu_T_world, self._pose_cov, tau, u, self._W, du=du)
 
     def update(self, ids=None, pixels=None) -> FrameStats:
         """Count the frame (IMU localization uses no observations)."""
@@ -564,6 +568,7 @@ class SlamFilter(_FrozenLog, _History):
         self.options = opts = options or FilterOptions()
         self.model = StereoModel(calibration.camera, calibration.cam_T_imu)
         self._V, self._W = opts.V, opts.W
+        self._attitude_jacobian = opts.level_velocity_jacobian
         self._gate = opts.gate_threshold
         self._drift_gate = opts.drift_threshold
         self._oc = opts.ekf == "oc"
@@ -596,6 +601,9 @@ class SlamFilter(_FrozenLog, _History):
         #: Observations skipped because their landmark was rejected earlier (the
         #: observations no innovation is computed for, besides repeats and new landmarks).
         self.observations_of_rejected = 0
+        #: Updates done per frame by the iterated update (update_iterations > 1), one
+        #: entry per frame with a joint update.
+        self.update_counts: list[int] = []
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
         self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames) if opts.remaps_stalled_tracks else None
 
@@ -692,9 +700,12 @@ class SlamFilter(_FrozenLog, _History):
         motion model, m ← m + τ v for every landmark.)"""
         self._require_healthy()
         tau = _check_dt(dt_s)
-        u = body_twist(_twist(linear_velocity, angular_velocity), self.state.imu_T_world, self.options.velocity_frame)
+        u_in = _twist(linear_velocity, angular_velocity)
+        frame = self.options.velocity_frame
+        u = body_twist(u_in, self.state.imu_T_world, frame)
+        du = body_twist_jacobian(u_in, self.state.imu_T_world, frame) if self._attitude_jacobian else None
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None)
+            predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None, du)
             if self._motion:
                 self.state.predict_landmarks(tau, self._accel_var)
         self._last_correction = np.zeros(6)  # used once: the next correction comes with the next update
@@ -784,7 +795,8 @@ class SlamFilter(_FrozenLog, _History):
             Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
         if opts.update_iterations > 1 and np.any(joint):
             correction = slam_update_iterated(state, self.model, slots[joint], z[joint], V, N_pose,
-                                              opts.update_iterations, self._update)
+                                              opts.update_iterations, self._update, opts.update_iteration_tolerance,
+                                              self.update_counts, (r[joint], Hp[joint], Hl[joint]))
         else:
             correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
         if drift and np.any(ok):

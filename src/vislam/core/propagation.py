@@ -20,10 +20,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from vislam.core.lie import se3_adjoint, se3_exp
+from vislam.core.lie import se3_adjoint, se3_exp, so3_exp, so3_left_jacobian
 from vislam.core.sequence import Sequence
 
-__all__ = ["motion_increments", "predict_pose", "predict_state", "dead_reckoning", "level_to_body", "body_to_level", "body_twist"]
+__all__ = ["motion_increments", "predict_pose", "predict_state", "dead_reckoning", "level_to_body", "body_to_level", "body_twist",
+           "body_twist_jacobian"]
 
 
 def _rotate_z(psi: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -64,6 +65,31 @@ def body_twist(u: np.ndarray, imu_T_world: np.ndarray, velocity_frame: str) -> n
     return out
 
 
+def body_twist_jacobian(u: np.ndarray, imu_T_world: np.ndarray, velocity_frame: str) -> np.ndarray | None:
+    """(6, 6) ∂u_body/∂δ of :func:`body_twist` at ``imu_T_world`` for the left
+    perturbation exp(δ^) imu_T_world, or None when it is zero ("body" velocities).
+
+    A levelled velocity is turned into the body frame with the estimate's roll and
+    pitch, so the body twist depends on the attitude: a roll/pitch error turns it (the
+    heading does not matter, v_body = R_bw Rz(ψ) v_level is invariant to a rotation about
+    the vertical). Only the block ∂v/∂φ (rows 0:3, columns 3:6) is nonzero; it is taken by
+    central differences (the map is smooth and 3x3)."""
+    if velocity_frame != "level":
+        return None
+    v = np.asarray(u[:3], dtype=np.float64)
+    h = 1e-6
+    poses = np.broadcast_to(imu_T_world, (6, 4, 4)).copy()  # ± h about each body axis, one batch
+    poses[:, :3, :3] = _PERTURB_ROTATIONS @ imu_T_world[:3, :3]
+    vb = level_to_body(poses, np.broadcast_to(v, (6, 3)))
+    D = np.zeros((6, 6))
+    D[:3, 3:] = (vb[:3] - vb[3:]).T / (2 * h)
+    return D
+
+
+#: exp(±h e_j^), h = 1e-6 (rows: +e1, +e2, +e3, −e1, −e2, −e3), for body_twist_jacobian.
+_PERTURB_ROTATIONS = so3_exp(np.concatenate([np.eye(3), -np.eye(3)]) * 1e-6)
+
+
 def motion_increments(sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
     """(T−1,) step lengths τ_k and (T−1, 6) twists u_{k+1} used for the step k → k+1."""
     tau = np.diff(sequence.timestamps_s)
@@ -72,7 +98,7 @@ def motion_increments(sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
 
 
 def predict_pose(imu_T_world: np.ndarray, pose_cov: np.ndarray, tau: float, u: np.ndarray, W: np.ndarray,
-                 oc_correction: np.ndarray | None = None):
+                 oc_correction: np.ndarray | None = None, du: np.ndarray | None = None):
     """One prediction step of the pose alone. Returns (μ', Σ', F).
 
     ``oc_correction`` (observability-constrained variant): the pose correction ε of the
@@ -82,6 +108,11 @@ def predict_pose(imu_T_world: np.ndarray, pose_cov: np.ndarray, tau: float, u: n
     """
     step = se3_exp(-tau * u)  # exp(−τ û)
     F = se3_adjoint(step)  # exp(−τ ad(u)) = Ad(exp(−τ û))
+    if du is not None:
+        # u depends on the pose (levelled velocities): exp(−τ u(exp(δ)μ)) ≈ exp(−τ J_l du δ) exp(−τ û)
+        # adds −τ J_l(−τu) du; du has only its ∂v/∂φ block, so J_l reduces to SO(3)'s
+        F = F.copy()
+        F[:3] -= tau * (so3_left_jacobian(-tau * u[3:]) @ du[:3])
     if oc_correction is not None:
         F = F @ se3_adjoint(se3_exp(oc_correction))  # F* = F Ad(exp(ε))
     mean = step @ imu_T_world  # μ' = exp(−τ û) μ
@@ -89,9 +120,10 @@ def predict_pose(imu_T_world: np.ndarray, pose_cov: np.ndarray, tau: float, u: n
     return mean, 0.5 * (cov + cov.T), F
 
 
-def predict_state(state, tau: float, u: np.ndarray, W: np.ndarray, oc_correction: np.ndarray | None = None) -> None:
+def predict_state(state, tau: float, u: np.ndarray, W: np.ndarray, oc_correction: np.ndarray | None = None,
+                  du: np.ndarray | None = None) -> None:
     """Prediction of the joint SLAM state in place (pose block and pose–landmark blocks)."""
-    mean, pose_cov, F = predict_pose(state.imu_T_world, state.pose_cov, tau, u, W, oc_correction)
+    mean, pose_cov, F = predict_pose(state.imu_T_world, state.pose_cov, tau, u, W, oc_correction, du)
     state.imu_T_world = mean
     n = state.dim
     cov = state.cov

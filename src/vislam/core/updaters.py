@@ -37,6 +37,7 @@ __all__ = [
     "compress_stereo",
     "slam_update",
     "slam_update_iterated",
+    "gain_times",
     "slam_update_reference",
     "slam_initialize_landmarks",
     "mapping_update",
@@ -139,6 +140,18 @@ def _gather_blocks(state: SlamState, slots: np.ndarray):
     return P[:POSE_DIM, :POSE_DIM], np.transpose(P_pl, (1, 0, 2)), P_ll
 
 
+def _linearize(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, N_pose: np.ndarray | None):
+    """(r, H_pose, H_lm, in_front) of observations ``z`` of landmark ``slots`` at the
+    current estimate (OC-projected with ``N_pose`` when given)."""
+    anchors = state.world_T_anchor[slots] if state.inverse_depth else None
+    z_hat, Hp, Hl, in_front = model.predict(state.imu_T_world, state.lm_mean[slots], world_T_anchor=anchors)
+    if state.lm_dim == 6:  # the observation does not depend on the velocity
+        Hl = np.concatenate([Hl, np.zeros_like(Hl)], axis=2)
+    if N_pose is not None:
+        Hp, Hl = oc_project(Hp, Hl, N_pose, state.lm_null[slots])
+    return z - z_hat, Hp, Hl, in_front
+
+
 def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
                      N_pose: np.ndarray | None = None):
     """Linearize every observation and compute its own innovation covariance and NIS.
@@ -151,13 +164,7 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
     Returns (r, H_pose, H_lm, in_front, nis, blocks); NIS is +inf where the landmark
     is behind the camera; blocks = (Σ_pp, Σ_ps, Σ_ss) of the prior.
     """
-    anchors = state.world_T_anchor[slots] if state.inverse_depth else None
-    z_hat, Hp, Hl, in_front = model.predict(state.imu_T_world, state.lm_mean[slots], world_T_anchor=anchors)
-    if state.lm_dim == 6:  # the observation does not depend on the velocity
-        Hl = np.concatenate([Hl, np.zeros_like(Hl)], axis=2)
-    if N_pose is not None:
-        Hp, Hl = oc_project(Hp, Hl, N_pose, state.lm_null[slots])
-    r = z - z_hat
+    r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
     P_pp, P_ps, P_ss = _gather_blocks(state, slots)
     HpPps = Hp @ P_ps  # (k, 4, 3)
     cross = HpPps @ np.swapaxes(Hl, 1, 2)
@@ -263,7 +270,7 @@ def compress_stereo(r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray
 
 
 def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
-                V: np.ndarray) -> np.ndarray:
+                V: np.ndarray, factors: dict | None = None) -> np.ndarray:
     """Joint EKF update of pose and landmarks with k accepted observations (in place).
 
     Block-sparse form of the report's update (after :func:`compress_stereo`)::
@@ -276,7 +283,8 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
         Σ   ← Σ − Bᵀ B = Σ − K S Kᵀ                        (symmetric rank-3k form)
 
     Returns the pose correction δ_p (μ ← exp(δ_p^) μ). Raises numpy.linalg.LinAlgError
-    when S is not positive definite.
+    when S is not positive definite. ``factors``: a dict that receives the gain's factors
+    (``L``, ``B`` and whether the rows were compressed), for :func:`gain_times`.
     """
     k = len(slots)
     if k == 0:
@@ -288,13 +296,40 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
     B = solve_triangular(L, PHt.T, lower=True, check_finite=False)  # B = L⁻¹ H Σ
     y = solve_triangular(L, r.reshape(-1), lower=True, check_finite=False)  # y = L⁻¹ r
     dx = B.T @ y  # δ = K r = Σ Hᵀ S⁻¹ r
+    if factors is not None:
+        factors.update(L=L, B=B, compressed=r.shape[1] == 3)
     P -= B.T @ B  # Σ ← Σ − K S Kᵀ (a full GEMM beats SYRK + symmetrizing at these sizes)
     _apply_correction(state, dx)
     return dx[:POSE_DIM]
 
 
+def gain_times(factors: dict, dr: np.ndarray) -> np.ndarray:
+    """K dr for (k, 4) residuals with the gain of the update that filled ``factors``
+    (K = Σ Hᵀ S⁻¹ = Bᵀ L⁻¹, the rows compressed as that update did)."""
+    if factors["compressed"]:  # the rows of compress_stereo: uL, (vL + vR)/2, uR
+        dr = np.stack([dr[:, 0], 0.5 * (dr[:, 1] + dr[:, 3]), dr[:, 2]], axis=1)
+    y = solve_triangular(factors["L"], dr.reshape(-1), lower=True, check_finite=False)
+    return factors["B"].T @ y
+
+
+def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
+    """Size of a state step in standard deviations of the current covariance: the largest
+    of the pose's and of each observed landmark's Mahalanobis norm (marginal blocks)."""
+    d = state.lm_dim
+    P = state.cov
+    sizes = [np.sqrt(max(float(dx[:POSE_DIM] @ np.linalg.solve(P[:POSE_DIM, :POSE_DIM], dx[:POSE_DIM])), 0.0))]
+    if len(slots):
+        rows = state.landmark_rows(slots)[:, :3]  # (k, 3) position rows
+        P_ll = P[rows[:, :, None], rows[:, None, :]]
+        e = dx[rows]
+        q = np.einsum("ki,ki->k", e, np.linalg.solve(P_ll, e[:, :, None])[:, :, 0])
+        sizes.append(np.sqrt(max(float(np.max(q)), 0.0)))
+    return max(sizes)
+
+
 def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
-                         N_pose: np.ndarray | None, iterations: int, update=None) -> np.ndarray:
+                         N_pose: np.ndarray | None, iterations: int, update=None, tolerance: float = 0.0,
+                         counts: list | None = None, first: tuple | None = None) -> np.ndarray:
     """Iterated EKF update (Gauss-Newton on the frame's observations) in place.
 
     Re-linearizes at the updated estimate x_i and redoes the update from the prior x₀, Σ₀::
@@ -304,26 +339,58 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     (x₀ ⊟ x_i: log(μ₀ μ_i⁻¹) for the pose — the left perturbation at μ_i — and m₀ − m_i
     for the landmarks; H_i OC-projected with ``N_pose`` when given). ``iterations`` = 1 is
     the EKF update. ``update``: the update function (default :func:`slam_update`).
+
+    ``tolerance`` > 0 makes ``iterations`` a maximum (adaptive iterated update): before
+    each re-linearized update, the step it would take is predicted to first order with
+    the last gain, ``x_{i+1} − x_i ≈ K_{i−1} (r̃_i − r̃_{i−1})`` (r̃_i the residual
+    z − h(x_i) − H_i (x₀ ⊟ x_i) the update would use: a linear model leaves it
+    unchanged), and the iterations stop when that step is below ``tolerance`` standard
+    deviations (of the pose and of every observed landmark, marginally, under the
+    current covariance) — the linearization at x_i then gives nothing new. A frame whose
+    prior is narrow against the pixel noise costs one update and one prediction.
+    ``counts``: a list that receives the number of updates done. ``first``: (r, H_pose,
+    H_lm) of these observations at the prior, when the caller has them already.
     Returns the total pose correction ε, μ = exp(ε) μ₀.
     """
     update = update or slam_update
     mu0 = state.imu_T_world.copy()
     lm0 = state.lm_mean.copy()
     v0 = state.v_lm_in_world.copy()
-    P0 = state.cov.copy()
+    factors = {} if tolerance > 0 else None
+    # the prior covariance: kept, or (adaptive) restored from the gain's factors only when
+    # iterating, Σ₀ = Σ + Bᵀ B, so that a frame that needs one update copies nothing
+    P0 = state.cov.copy() if factors is None else None
+    r_prev = None
+    done = 0
     for i in range(max(int(iterations), 1)):
-        r, Hp, Hl, in_front, _, _ = slam_predict_nis(state, model, slots, z, V, N_pose)
+        if i == 0 and first is not None:
+            (r, Hp, Hl), in_front = first, None
+        else:
+            r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
         if i and not np.all(in_front):
             break  # keep the last iterate: the next linearization point has a point behind the camera
         if i:
             d = np.concatenate([lm0[slots] - state.lm_mean[slots], v0[slots] - state.v_lm_in_world[slots]],
                                axis=1)[:, :Hl.shape[2]]
             r = r - Hp @ se3_log(mu0 @ se3_inverse(state.imu_T_world)) - np.einsum("kij,kj->ki", Hl, d)
+            if factors and _step_size(state, slots, gain_times(factors, r - r_prev)) < tolerance:
+                break  # converged: the re-linearization would move the estimate by a negligible step
             state.imu_T_world = mu0.copy()
             state.lm_mean = lm0.copy()
             state.v_lm_in_world = v0.copy()
-            state.cov[...] = P0
-        update(state, slots, r, Hp, Hl, V)
+            if P0 is None:
+                P, B = state.cov, factors["B"]
+                P += B.T @ B  # Σ₀ = Σ + K S Kᵀ (in place)
+            else:
+                state.cov[...] = P0
+        if factors is None:
+            update(state, slots, r, Hp, Hl, V)
+        else:
+            update(state, slots, r, Hp, Hl, V, factors=factors)
+        r_prev = r
+        done += 1
+    if counts is not None:
+        counts.append(done)
     return se3_log(state.imu_T_world @ se3_inverse(mu0))
 
 
@@ -365,7 +432,7 @@ def schmidt_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.nd
 
 
 def slam_update_reference(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
-                          V: np.ndarray) -> None:
+                          V: np.ndarray, factors: dict | None = None) -> None:
     """The plain (dense) formulation of :func:`slam_update`, for tests: builds the full
     4k x n Jacobian and applies the Joseph form ``(I − K H) Σ (I − K H)ᵀ + K (I ⊗ V) Kᵀ``."""
     k = len(slots)
@@ -382,6 +449,9 @@ def slam_update_reference(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp
     S = H @ P @ H.T + R  # S = H Σ Hᵀ + I ⊗ V
     K = P @ H.T @ np.linalg.inv(S)  # K = Σ Hᵀ S⁻¹
     dx = K @ r.reshape(-1)  # δ = K (z − ẑ)
+    if factors is not None:  # K = Bᵀ L⁻¹ with S = L Lᵀ, B = L⁻¹ H Σ (for gain_times)
+        L = np.linalg.cholesky(S)
+        factors.update(L=L, B=np.linalg.solve(L, H @ P), compressed=False)
     IKH = np.eye(n) - K @ H
     state.cov[...] = IKH @ P @ IKH.T + K @ R @ K.T  # Joseph form
     _apply_correction(state, dx)
