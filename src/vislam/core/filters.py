@@ -573,6 +573,9 @@ class SlamFilter(_FrozenLog, _History):
         self._drift_gate = opts.drift_threshold
         self._oc = opts.ekf == "oc"
         self._motion = opts.landmark_motion
+        # the landmark motion model keeps Cartesian (p, v) landmarks, where iterating
+        # converges on the linearized triangulation's error: one update (see update_iterations)
+        self._iterations = 1 if self._motion else opts.update_iterations
         self._velocity_var = opts.landmark_velocity_std_mps**2
         self._accel_var = opts.landmark_acceleration_std_mps2**2
         self._update = slam_update_reference if reference else slam_update
@@ -793,9 +796,9 @@ class SlamFilter(_FrozenLog, _History):
         joint = ok & ~young
         if drift and np.any(ok):
             Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
-        if opts.update_iterations > 1 and np.any(joint):
+        if self._iterations > 1 and np.any(joint):
             correction = slam_update_iterated(state, self.model, slots[joint], z[joint], V, N_pose,
-                                              opts.update_iterations, self._update, opts.update_iteration_tolerance,
+                                              self._iterations, self._update, opts.update_iteration_tolerance,
                                               self.update_counts, (r[joint], Hp[joint], Hl[joint]))
         else:
             correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)

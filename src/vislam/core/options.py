@@ -208,6 +208,7 @@ class FilterOptions:
     #: Cartesian landmark prior is a linearized, skewed triangulation, and converging on
     #: it converges on its error. See update_iteration_tolerance for the adaptive form.
     #: Default 4 (a maximum, with update_iteration_tolerance 0.5) since 2026-11-30.
+    #: With landmark_motion (Cartesian landmarks with a velocity) the update is not iterated.
     update_iterations: int = 4
     #: With update_iterations > 1: stop iterating once the next re-linearization would
     #: move the estimate by less than this many standard deviations (pose, and each
