@@ -38,7 +38,7 @@ def _strict_rerun():
 
 @pytest.fixture(scope="module")
 def drive():
-    return simulate_drive(SimulationOptions(seed=0, n_frames=N_FRAMES))
+    return simulate_drive(SimulationOptions(seed=0, n_frames=N_FRAMES, outlier_fraction=0.02))  # outliers: some landmarks get rejected (red)
 
 
 @pytest.fixture(scope="module")
