@@ -260,8 +260,8 @@ def test_level_odometry_ignores_roll_and_pitch():
 
 def test_drift_test_rejects_moving_landmarks():
     """Moving landmarks and outliers (issue 12): with the drift test the smoother stays
-    within 1.5x of the clean drive's ATE (measured 1.07x on this drive); without it the
-    moving points pull the poses (2.3x). Most of the moving landmarks are rejected."""
+    within 1.5x of the clean drive's ATE (measured 0.95x on this drive); without it the
+    moving points pull the poses (2.1x). Most of the moving landmarks are rejected."""
     noise = dict(n_frames=200, seed=1, **NOISY)
     model = FilterOptions(**NOISY)
     clean = simulate_drive(SimulationOptions(**noise))
