@@ -50,7 +50,8 @@ def main(argv=None) -> None:
     opts = FilterOptions(**NOISE, **extra)
     modes = ("smoother",) if args.no_ekf else ("smoother", "slam")
     ratios = {m: [] for m in modes}
-    print("seed | " + " | ".join(f"{m} clean / moving / ratio" for m in modes) + " | drift-rejected, smoother ms/frame")
+    header = " | ".join(f"{m} clean / moving / ratio" for m in modes)
+    print(f"seed | {header} | drift-rejected, smoother ms/frame")
     for seed in [int(s) for s in args.seeds.split(",")]:
         ate = {}
         for kind, sim_extra in (("clean", {}), ("moving", MOVING)):

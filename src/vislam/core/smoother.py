@@ -565,8 +565,9 @@ class SmootherFilter(_History):
         """Drift test of the landmarks observed in the frame just checked (``points``: key
         -> current estimate), the smoother's counterpart of the EKF's drift test. A
         static point fits its observations in the window without a trend; a point on a
-        moving vehicle, fitted as static, leaves residuals that drift one way. For each landmark with at least three checked,
-        kept observations in the window, at the current estimate:
+        moving vehicle, fitted as static, leaves residuals that drift one way. For each
+        landmark with at least three checked, kept observations in the window, at the
+        current estimate:
 
         * the trend statistic ‖Σ s_i r_i‖² / Σ s_i² of its whitened residuals r_i
           (uL, uR, v) regressed on the frame number (s_i = k_i − mean k), compared with

@@ -13,9 +13,10 @@ Option resolution (lowest to highest precedence):
        gating_probability: null            gating_probability = "none"
 
    The optional tests (``gating_probability``, ``drift_test_probability``,
-   ``smoother_drift_ratio``) accept ``null`` (YAML), ``false`` or the string ``"none"`` (TOML has no null) to
-   switch the test off. YAML numbers in exponent form without a dot (``3e-4``) are
-   read as numbers, not strings (PyYAML follows YAML 1.1 there; we do not);
+   ``smoother_drift_ratio``) accept ``null`` (YAML), ``false`` or the string
+   ``"none"`` (TOML has no null) to switch the test off. YAML numbers in exponent
+   form without a dot (``3e-4``) are read as numbers, not strings (PyYAML follows
+   YAML 1.1 there; we do not);
 3. command-line flags (``overrides``).
 
 Every problem — a missing, unreadable or syntactically broken file, an unknown key, a
