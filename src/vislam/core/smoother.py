@@ -44,6 +44,14 @@ removed with the next update (gated); a landmark gated ``max_consecutive_gated``
 in a row is rejected (no further factors; flagged in the map). An observation whose
 remapped pose has left the window is dropped (counted as gated).
 
+Moving landmarks (``smoother_drift_ratio``, ``smoother_drift_min_speed_mps``): after
+the same update, the landmarks observed in frame t get a drift test over their
+observations in the window (:meth:`SmootherFilter._drift_test`): a point on a moving
+vehicle, fitted as static, leaves residuals with a one-signed trend in time. One whose
+trend statistic exceeds ``smoother_drift_ratio`` times the median of the frame's tested
+landmarks and whose apparent speed exceeds ``smoother_drift_min_speed_mps`` is rejected
+and all its factors still in the window are removed (counted in ``landmarks_moving``).
+
 :func:`refine` (``--refine``): batch Levenberg–Marquardt over every factor of the drive
 from the smoother's final estimate, robust (``refine_kernel``), then a second pass
 without the stereo factors whose reprojection error exceeds ``refine_outlier_px``.
@@ -74,6 +82,9 @@ from vislam.errors import ConfigError, EstimationError
 logger = logging.getLogger(__name__)
 
 __all__ = ["SmootherFilter", "run_smoother", "refine", "to_ekf_covariance"]
+
+#: Fewest landmarks tested in a frame for the drift test's median (else no test).
+_MIN_DRIFT_POPULATION = 10
 
 #: (v, ω) <-> (ω, v): the same permutation both ways.
 _PERM = np.array([3, 4, 5, 0, 1, 2])
@@ -265,6 +276,9 @@ class SmootherFilter(_History):
         self._stereo_removed: set[int] = set()
         self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
         self._unchecked: tuple = (-1, [])  # (frame, observations, factor indices) not yet checked
+        self._drift_gate = np.inf if opts.smoother_drift_ratio is None else float(opts.smoother_drift_ratio)
+        self.drift_log: list | None = None  # a list: (id, n, statistic / median, speed, frame) per test
+        self._fresh: set[int] = set()  # frames whose _pose_value is from the latest update
         self.timings = {"marginals_s": 0.0, "update_s": 0.0}
         self._init_history()
 
@@ -429,7 +443,7 @@ class SmootherFilter(_History):
             lm = self._landmarks[key]
             lm.stamp = now
             stamps[self._L(key)] = now
-            entry = [k, len(self._stereo_factors), graph.size()]
+            entry = [k, len(self._stereo_factors), graph.size(), z[i], False]
             lm.obs.append(entry)
             entries.append(entry)
             added.append((lm, k, z[i], entry))
@@ -455,7 +469,7 @@ class SmootherFilter(_History):
                     prior = g.PriorFactorPoint3(L, p, self._lm_prior)
                     self._prior_factors.append(prior)
                     graph.add(prior)
-                    entry = [int(k), len(self._stereo_factors), graph.size()]
+                    entry = [int(k), len(self._stereo_factors), graph.size(), new_z[j], True]
                     lm.obs.append(entry)
                     entries.append(entry)
                     graph.add(self._stereo(new_z[j], int(k), key))
@@ -472,6 +486,7 @@ class SmootherFilter(_History):
         factor_index = list(self._smoother.getISAM2Result().getNewFactorsIndices())
         self._current = self._smoother.calculateEstimatePose3(X).matrix()
         self._pose_value[t] = self._current
+        self._fresh = {t}
         self.timings["update_s"] += time.perf_counter() - tic
         if self.options.smoother_pose_covariance:
             tic = time.perf_counter()
@@ -516,6 +531,7 @@ class SmootherFilter(_History):
         uniq, inv = np.unique(frames, return_inverse=True)
         for k in uniq.tolist():
             self._pose_value[k] = self._smoother.calculateEstimatePose3(self._X(k)).matrix()
+            self._fresh.add(k)
         poses = np.array([self._pose_value[k] for k in uniq.tolist()])
         p = np.array([self._smoother.calculateEstimatePoint3(self._L(a[0].key)) for a in added]).reshape(n_added, 3)
         err = self._whitened_norms(poses[inv], p, np.array([a[2] for a in added]))
@@ -539,8 +555,123 @@ class SmootherFilter(_History):
                         del self._tracks[lm.id]
                         self._rejected_ids.add(lm.id)
             else:
+                entry[4] = True
                 self._accept(lm, t)
+        if self._drift_gate < np.inf:
+            self._drift_test([a[0] for a in added], {a[0].key: p[j] for j, a in enumerate(added)}, remove)
         self._to_remove = remove  # with the next update (the landmark stays in the window until then)
+
+    def _drift_test(self, lms: list, points: dict, remove: list) -> None:
+        """Drift test of the landmarks observed in the frame just checked (``points``: key
+        -> current estimate), the smoother's counterpart of the EKF's drift test. A
+        static point fits its observations in the window without a trend; a point on a
+        moving vehicle, fitted as static, leaves residuals that drift one way. For each
+        landmark with at least three checked, kept observations in the window, at the
+        current estimate:
+
+        * the trend statistic ‖Σ s_i r_i‖² / Σ s_i² of its whitened residuals r_i
+          (uL, uR, v) regressed on the frame number (s_i = k_i − mean k), compared with
+          the median over the landmarks tested in this frame (at least
+          ``_MIN_DRIFT_POPULATION`` of them): beyond ``smoother_drift_ratio`` times the
+          median it drifts. Relative, not a chi-square quantile: σ is not the
+          features' true scatter, and on real data static points trend too;
+        * its apparent speed: one Gauss-Newton step of the point as moving at constant
+          velocity over the observations' timestamps; a trend below
+          ``smoother_drift_min_speed_mps`` is not taken for motion (on dense 0027 the
+          static points that trend do so at ~0.4 m/s, the simulator's vehicles at 3–15).
+
+        A landmark that fails both is rejected and all its factors still in the window
+        are removed with the next update: they have been pulling the poses."""
+        seen, todo = set(), []
+        for lm in lms:
+            if lm.rejected or lm.key in seen:
+                continue
+            seen.add(lm.key)
+            obs = [e for e in lm.obs if e[4] and e[2] >= 0 and e[0] in self._pose_stamp]
+            if len(obs) >= 3:
+                todo.append((lm, obs))
+        if len(todo) < _MIN_DRIFT_POPULATION:
+            return
+        n = len(todo)
+        owner = np.array([j for j, (_, obs) in enumerate(todo) for _ in obs], dtype=np.int64)  # sorted
+        frames = np.array([e[0] for _, obs in todo for e in obs], dtype=np.int64)
+        pix = np.array([e[3] for _, obs in todo for e in obs])
+        uniq, inv = np.unique(frames, return_inverse=True)
+        for k in uniq.tolist():
+            if k not in self._fresh:
+                self._pose_value[k] = self._smoother.calculateEstimatePose3(self._X(k)).matrix()
+                self._fresh.add(k)
+        world_T_imu = np.array([self._pose_value[k] for k in uniq.tolist()])[inv]
+        p = np.array([points[lm.key] for lm, _ in todo]).reshape(n, 3)
+        r, front = self._whitened_residuals(world_T_imu, p[owner], pix)
+        r = np.where(front[:, None], r, 0.0)
+        w = front.astype(np.float64)
+        starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+        cnt = np.add.reduceat(w, starts)
+        mean_k = np.add.reduceat(w * frames, starts) / np.maximum(cnt, 1)
+        s = (frames - mean_k[owner]) * w
+        ss = np.add.reduceat(s * s, starts)
+        S = np.add.reduceat(s[:, None] * r, starts)
+        stat = np.einsum("ki,ki->k", S, S) / np.maximum(ss, 1e-12)
+        valid = (cnt >= 3) & (ss > 0)
+        if np.count_nonzero(valid) < _MIN_DRIFT_POPULATION:
+            return
+        typical = float(np.median(stat[valid]))
+        moving = valid & (stat > self._drift_gate * max(typical, 1e-12))
+        speed = np.zeros(n)
+        if np.any(moving):
+            speed = self._apparent_speed(world_T_imu, p[owner], frames, r, front, starts)
+            moving &= speed > self.options.smoother_drift_min_speed_mps
+        if self.drift_log is not None:
+            self.drift_log.extend(zip([lm.id for lm, _ in todo], cnt.tolist(), (stat / max(typical, 1e-12)).tolist(),
+                                      speed.tolist(), [self.frame_index] * n))
+        for j in np.flatnonzero(moving).tolist():
+            lm = todo[j][0]
+            lm.rejected = True
+            self.stats.landmarks_rejected += 1
+            self.stats.landmarks_moving += 1
+            self._remove_factors(lm, list(lm.obs), remove)
+            if self._tracks.get(lm.id) == lm.key:
+                del self._tracks[lm.id]
+                self._rejected_ids.add(lm.id)
+
+    def _apparent_speed(self, world_T_imu, p, frames, r, front, starts) -> np.ndarray:
+        """(n,) speed (m/s) of n landmarks taken as points moving at constant velocity:
+        one Gauss-Newton step from their static estimate for (δp, v) with
+        p(t_i) = p + δp + v (t_i − t̄), over observations from poses ``world_T_imu``
+        (N, 4, 4) of points ``p`` (N, 3) with whitened residuals ``r`` (N, 3), grouped
+        by landmark (``starts``: first row of each)."""
+        cam = self.calibration.camera
+        cam_T_world = self.model.cam_T_imu @ se3_inverse(world_T_imu)
+        R = cam_T_world[:, :3, :3]
+        q = np.einsum("kij,kj->ki", R, p) + cam_T_world[:, :3, 3]
+        zc = np.where(front, q[:, 2], 1.0)
+        x, y = q[:, 0], q[:, 1]
+        J = np.zeros((q.shape[0], 3, 3))  # d(uL, uR, v)/dq
+        J[:, 0, 0] = J[:, 1, 0] = cam.fsu / zc
+        J[:, 0, 2] = -cam.fsu * x / zc**2
+        J[:, 1, 2] = -cam.fsu * (x - cam.baseline_m) / zc**2
+        J[:, 2, 1] = cam.fsv / zc
+        J[:, 2, 2] = -cam.fsv * y / zc**2
+        J = (J @ R) / self._sigmas[None, :, None] * front[:, None, None]  # whitened, d/dp
+        w = front.astype(np.float64)
+        ts = np.array([self._pose_stamp[k] for k in frames.tolist()])
+        cnt = np.add.reduceat(w, starts)
+        tmean = np.add.reduceat(w * ts, starts) / np.maximum(cnt, 1)
+        owner = np.repeat(np.arange(starts.size), np.diff(np.r_[starts, ts.size]))
+        sv = (ts - tmean[owner]) * w
+        JtJ = np.swapaxes(J, 1, 2) @ J
+        Jtr = np.einsum("kji,kj->ki", J, r)
+        M = np.empty((ts.size, 6, 6))
+        M[:, :3, :3] = JtJ
+        M[:, :3, 3:] = M[:, 3:, :3] = JtJ * sv[:, None, None]
+        M[:, 3:, 3:] = JtJ * (sv * sv)[:, None, None]
+        A = np.add.reduceat(M, starts, axis=0)
+        b = -np.add.reduceat(np.concatenate([Jtr, Jtr * sv[:, None]], axis=1), starts, axis=0)
+        A[:, :3, :3] += np.eye(3) / self.options.smoother_landmark_prior_m**2
+        A += 1e-9 * np.eye(6)
+        sol = np.linalg.solve(A, b[:, :, None])[:, :, 0]
+        return np.linalg.norm(sol[:, 3:], axis=1)
 
     def _remove_factors(self, lm: _Landmark, entries: list, remove: list) -> None:
         """Schedule the removal of stereo factors of ``lm`` (those whose pose is still in
@@ -561,6 +692,13 @@ class SmootherFilter(_History):
     def _whitened_norms(self, world_T_imu: np.ndarray, p: np.ndarray, pix: np.ndarray) -> np.ndarray:
         """(n,) norms of the whitened (uL, uR, v) errors of observations ``pix`` (n, 4) of
         landmarks ``p`` (n, 3) from poses (n, 4, 4); inf behind the camera."""
+        r, front = self._whitened_residuals(world_T_imu, p, pix)
+        return np.where(front, np.sqrt(np.einsum("ki,ki->k", r, r)), np.inf)
+
+    def _whitened_residuals(self, world_T_imu: np.ndarray, p: np.ndarray, pix: np.ndarray):
+        """((n, 3) whitened (uL, uR, v) errors, prediction − measurement, of observations
+        ``pix`` (n, 4) of landmarks ``p`` (n, 3) from poses (n, 4, 4); (n,) in front of
+        the camera)."""
         cam_T_world = self.model.cam_T_imu @ se3_inverse(world_T_imu)
         q = np.einsum("kij,kj->ki", cam_T_world[:, :3, :3], p) + cam_T_world[:, :3, 3]
         cam = self.calibration.camera
@@ -569,8 +707,7 @@ class SmootherFilter(_History):
         pred = np.stack([cam.fsu * q[:, 0] / z + cam.cu, cam.fsu * (q[:, 0] - cam.baseline_m) / z + cam.cu,
                          cam.fsv * q[:, 1] / z + cam.cv], axis=1)
         meas = np.stack([pix[:, 0], pix[:, 2], 0.5 * (pix[:, 1] + pix[:, 3])], axis=1)
-        r = (pred - meas) / self._sigmas
-        return np.where(front, np.sqrt(np.einsum("ki,ki->k", r, r)), np.inf)
+        return (pred - meas) / self._sigmas, front
 
     def _marginalize(self, cutoff: float) -> None:
         """Freeze the poses and landmarks whose timestamp is before ``cutoff`` (they leave

@@ -12,10 +12,11 @@ Option resolution (lowest to highest precedence):
        angular_noise_radps: 0.05           angular_noise_radps = 0.05
        gating_probability: null            gating_probability = "none"
 
-   The optional probabilities (``gating_probability``, ``drift_test_probability``)
-   accept ``null`` (YAML), ``false`` or the string ``"none"`` (TOML has no null) to
-   switch the test off. YAML numbers in exponent form without a dot (``3e-4``) are
-   read as numbers, not strings (PyYAML follows YAML 1.1 there; we do not);
+   The optional tests (``gating_probability``, ``drift_test_probability``,
+   ``smoother_drift_ratio``) accept ``null`` (YAML), ``false`` or the string
+   ``"none"`` (TOML has no null) to switch the test off. YAML numbers in exponent
+   form without a dot (``3e-4``) are read as numbers, not strings (PyYAML follows
+   YAML 1.1 there; we do not);
 3. command-line flags (``overrides``).
 
 Every problem — a missing, unreadable or syntactically broken file, an unknown key, a
@@ -44,7 +45,7 @@ __all__ = ["CONFIG_SUFFIXES", "OPTIONAL_FIELDS", "read_config_document", "load_o
 #: File suffix -> format.
 CONFIG_SUFFIXES = {".yaml": "yaml", ".yml": "yaml", ".toml": "toml"}
 #: FilterOptions fields that may be switched off (None).
-OPTIONAL_FIELDS = ("gating_probability", "drift_test_probability")
+OPTIONAL_FIELDS = ("gating_probability", "drift_test_probability", "smoother_drift_ratio")
 #: Largest difference (s) between a TUM pose file's timestamps and the dataset's.
 POSE_TIME_TOLERANCE_S = 0.02
 
