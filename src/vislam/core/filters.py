@@ -43,7 +43,7 @@ import numpy as np
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
 from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
-from vislam.core.propagation import body_twist, body_twist_jacobian, predict_pose, predict_state
+from vislam.core.propagation import body_twist, predict_pose, predict_state, prediction_twist
 from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
 from vislam.core.sequence import Calibration, Frame
 from vislam.core.stalls import StallRemapBuffer
@@ -264,10 +264,8 @@ class LocalizationFilter(_History):
     def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
         """μ ← exp(−τ û) μ,  Σ ← F Σ Fᵀ + τ² W  (the report's eq. for the IMU prediction)."""
         tau = _check_dt(dt_s)
-        u_in = _twist(linear_velocity, angular_velocity)
-        frame = self.options.velocity_frame
-        u = body_twist(u_in, self.imu_T_world, frame)
-        du = body_twist_jacobian(u_in, self.imu_T_world, frame) if self._attitude_jacobian else None
+        u, du = prediction_twist(_twist(linear_velocity, angular_velocity), self.imu_T_world,
+                                 self.options.velocity_frame, self._attitude_jacobian)
         self.imu_T_world, self._pose_cov, _ = predict_pose(self.imu_T_world, self._pose_cov, tau, u, self._W, du=du)
 
     def update(self, ids=None, pixels=None) -> FrameStats:
@@ -703,10 +701,8 @@ class SlamFilter(_FrozenLog, _History):
         motion model, m ← m + τ v for every landmark.)"""
         self._require_healthy()
         tau = _check_dt(dt_s)
-        u_in = _twist(linear_velocity, angular_velocity)
-        frame = self.options.velocity_frame
-        u = body_twist(u_in, self.state.imu_T_world, frame)
-        du = body_twist_jacobian(u_in, self.state.imu_T_world, frame) if self._attitude_jacobian else None
+        u, du = prediction_twist(_twist(linear_velocity, angular_velocity), self.state.imu_T_world,
+                                 self.options.velocity_frame, self._attitude_jacobian)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None, du)
             if self._motion:

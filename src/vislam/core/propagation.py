@@ -24,13 +24,19 @@ from vislam.core.lie import se3_adjoint, se3_exp, so3_exp, so3_left_jacobian
 from vislam.core.sequence import Sequence
 
 __all__ = ["motion_increments", "predict_pose", "predict_state", "dead_reckoning", "level_to_body", "body_to_level", "body_twist",
-           "body_twist_jacobian"]
+           "body_twist_jacobian", "prediction_twist"]
 
 
 def _rotate_z(psi: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Rz(ψ) v, batched over leading axes."""
     c, s = np.cos(psi), np.sin(psi)
     return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1], v[..., 2]], axis=-1)
+
+
+def _heading(R_bw: np.ndarray) -> np.ndarray:
+    """ψ, the world-frame heading of the body's x axis in the horizontal plane, from
+    the rotation R_bw of ``imu_T_world`` (batched)."""
+    return np.arctan2(R_bw[..., 0, 1], R_bw[..., 0, 0])  # world_R_imu[1, 0], world_R_imu[0, 0]
 
 
 def level_to_body(imu_T_world: np.ndarray, linear_velocity: np.ndarray) -> np.ndarray:
@@ -41,17 +47,15 @@ def level_to_body(imu_T_world: np.ndarray, linear_velocity: np.ndarray) -> np.nd
     over leading axes ((..., 4, 4) poses, (..., 3) velocities); :func:`body_to_level`
     is its inverse."""
     R_bw = imu_T_world[..., :3, :3]
-    psi = np.arctan2(R_bw[..., 0, 1], R_bw[..., 0, 0])  # world_R_imu[1, 0], world_R_imu[0, 0]
-    v_world = _rotate_z(psi, np.asarray(linear_velocity, dtype=np.float64))  # Rz(ψ) v
+    v_world = _rotate_z(_heading(R_bw), np.asarray(linear_velocity, dtype=np.float64))  # Rz(ψ) v
     return np.matmul(R_bw, v_world[..., None])[..., 0]
 
 
 def body_to_level(imu_T_world: np.ndarray, linear_velocity: np.ndarray) -> np.ndarray:
     """The inverse of :func:`level_to_body`: v_level = Rz(ψ)ᵀ · R_bwᵀ · v_body (batched)."""
     R_bw = imu_T_world[..., :3, :3]
-    psi = np.arctan2(R_bw[..., 0, 1], R_bw[..., 0, 0])
     v_world = np.matmul(np.swapaxes(R_bw, -1, -2), np.asarray(linear_velocity, dtype=np.float64)[..., None])[..., 0]
-    return _rotate_z(-psi, v_world)
+    return _rotate_z(-_heading(R_bw), v_world)
 
 
 def body_twist(u: np.ndarray, imu_T_world: np.ndarray, velocity_frame: str) -> np.ndarray:
@@ -84,6 +88,15 @@ def body_twist_jacobian(u: np.ndarray, imu_T_world: np.ndarray, velocity_frame: 
     D = np.zeros((6, 6))
     D[:3, 3:] = (vb[:3] - vb[3:]).T / (2 * h)
     return D
+
+
+def prediction_twist(u: np.ndarray, imu_T_world: np.ndarray, velocity_frame: str, jacobian: bool):
+    """What a prediction from ``imu_T_world`` needs of the recorded twist ``u``: (the
+    body twist of :func:`body_twist`, its attitude derivative of
+    :func:`body_twist_jacobian` when ``jacobian`` — FilterOptions.level_velocity_jacobian
+    — else None)."""
+    du = body_twist_jacobian(u, imu_T_world, velocity_frame) if jacobian else None
+    return body_twist(u, imu_T_world, velocity_frame), du
 
 
 #: exp(±h e_j^), h = 1e-6 (rows: +e1, +e2, +e3, −e1, −e2, −e3), for body_twist_jacobian.

@@ -49,6 +49,7 @@ from vislam.core.corrections import apply_corrections
 from vislam.core.filters import SlamFilter
 from vislam.core.options import FilterOptions
 from vislam.core.sequence import Sequence
+from vislam.core.updaters import innovation_covariances
 from vislam.errors import ConfigError, EstimationError
 
 logger = logging.getLogger(__name__)
@@ -95,10 +96,8 @@ class InnovationLikelihood:
         self.n_behind += int(f.size - np.count_nonzero(f))
         if not np.any(f):
             return
-        Hp, Hl, P_ps, P_ss, nis = Hp[f], Hl[f], P_ps[f], P_ss[f], nis[f]
-        cross = (Hp @ P_ps) @ np.swapaxes(Hl, 1, 2)
-        S = Hp @ P_pp @ np.swapaxes(Hp, 1, 2) + cross + np.swapaxes(cross, 1, 2) \
-            + Hl @ P_ss @ np.swapaxes(Hl, 1, 2) + V  # as slam_predict_nis
+        Hp, Hl, nis = Hp[f], Hl[f], nis[f]
+        S = innovation_covariances(Hp, Hl, (P_pp, P_ps[f], P_ss[f]), V)  # as slam_predict_nis
         sign, logdet = np.linalg.slogdet(S)
         good = (sign > 0) & np.isfinite(logdet) & np.isfinite(nis)
         self.n_behind += int(good.size - np.count_nonzero(good))

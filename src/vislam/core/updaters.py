@@ -38,6 +38,7 @@ __all__ = [
     "slam_update",
     "slam_update_iterated",
     "gain_times",
+    "innovation_covariances",
     "slam_update_reference",
     "slam_initialize_landmarks",
     "mapping_update",
@@ -165,14 +166,23 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
     is behind the camera; blocks = (Σ_pp, Σ_ps, Σ_ss) of the prior.
     """
     r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
-    P_pp, P_ps, P_ss = _gather_blocks(state, slots)
-    HpPps = Hp @ P_ps  # (k, 4, 3)
-    cross = HpPps @ np.swapaxes(Hl, 1, 2)
-    S = Hp @ P_pp @ np.swapaxes(Hp, 1, 2) + cross + np.swapaxes(cross, 1, 2) + Hl @ P_ss @ np.swapaxes(Hl, 1, 2) + V
+    blocks = _gather_blocks(state, slots)
+    S = innovation_covariances(Hp, Hl, blocks, V)
     nis = np.full(len(slots), np.inf)
     if np.any(in_front):
         nis[in_front] = innovation_nis(r[in_front], S[in_front])
-    return r, Hp, Hl, in_front, nis, (P_pp, P_ps, P_ss)
+    return r, Hp, Hl, in_front, nis, blocks
+
+
+def innovation_covariances(Hp: np.ndarray, Hl: np.ndarray, blocks, V: np.ndarray) -> np.ndarray:
+    """(k, 4, 4) innovation covariance of each observation on its own, from its
+    Jacobians and the prior blocks (Σ_pp, Σ_ps, Σ_ss) of :func:`slam_predict_nis`::
+
+        S_i = H_p Σ_pp H_pᵀ + H_p Σ_ps H_lᵀ + H_l Σ_sp H_pᵀ + H_l Σ_ss H_lᵀ + V
+    """
+    P_pp, P_ps, P_ss = blocks
+    cross = (Hp @ P_ps) @ np.swapaxes(Hl, 1, 2)  # H_p Σ_ps H_lᵀ (k, 4, 4)
+    return Hp @ P_pp @ np.swapaxes(Hp, 1, 2) + cross + np.swapaxes(cross, 1, 2) + Hl @ P_ss @ np.swapaxes(Hl, 1, 2) + V
 
 
 def conditional_residual_model(blocks, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray):
@@ -383,10 +393,7 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
                 P += B.T @ B  # Σ₀ = Σ + K S Kᵀ (in place)
             else:
                 state.cov[...] = P0
-        if factors is None:
-            update(state, slots, r, Hp, Hl, V)
-        else:
-            update(state, slots, r, Hp, Hl, V, factors=factors)
+        update(state, slots, r, Hp, Hl, V, factors=factors)
         r_prev = r
         done += 1
     if counts is not None:
