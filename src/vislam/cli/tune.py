@@ -24,7 +24,8 @@ def register(subparsers) -> None:
         description="Choose velocity_noise_mps, angular_noise_radps and pixel_noise_px for DATA without ground "
         "truth: each candidate is a SLAM run scored by the mean robust (Student-t) predictive log-density of its "
         "innovations, every observation of a landmark in the state counted before gating; a log-spaced coarse grid, "
-        "a pixel-noise line and pattern-search rounds, the runs of each round in parallel on a Dask cluster. Writes "
+        "a pixel-noise line and a compass search with a fitted-quadratic proposal, the runs of each round in parallel "
+        "on a Dask cluster. Writes "
         "DIR/tuned.yaml (for `vislam run --config`), DIR/tune.json (every candidate, the choice, run time, "
         "`vislam check`'s estimates) and DIR/tune.png.",
     )
@@ -41,7 +42,9 @@ def register(subparsers) -> None:
                         help="points of the coarse log grid per IMU noise and of the pixel-noise line (default 4: "
                         "16 + 4 runs)")
     parser.add_argument("--refine", type=int, default=3, metavar="N",
-                        help="pattern-search rounds after the grid, 6 runs each (default 3)")
+                        help="step sizes of the compass search after the grid (each half the one before; a step is "
+                        "polled, 4-8 runs a round, until a round no longer improves the best; default 3, at most 10 "
+                        "rounds)")
     parser.add_argument("--pixel-noise", choices=["keep", "tune"], default="keep",
                         help="keep (default): search the IMU noise only, with the options file's (or the default) "
                         "pixel_noise_px; tune: search it too (the robust likelihood drives it to the bottom of its "

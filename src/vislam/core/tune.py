@@ -25,9 +25,11 @@ It is a proper density in S, so shrinking the noise does not pay: for S → 0 th
 goes to −∞ (as ν log σ).
 
 The search (:class:`NoiseSearch`) is log-spaced: a coarse grid over the velocity and
-angular noise, a line over the pixel noise, then rounds of a pattern search (each
-noise × and ÷ a step that halves every round) and a last candidate at the per-axis
-parabola vertex. The candidates of each round are independent runs, so a caller can
+angular noise, a line over the pixel noise, then a compass (pattern) search: each
+round polls every noise × and ÷ a step around the best so far; the step is kept while a
+round improves the best and halved when it does not, and the search ends when the
+smallest step's round does not improve (or after ``max_polls`` rounds); a last
+candidate at the per-axis parabola vertex. The candidates of each round are independent runs, so a caller can
 evaluate them in parallel (:mod:`vislam.tools.tune` does, on Dask).
 
 Pure computation: no I/O.
@@ -211,8 +213,14 @@ class SearchSpace:
     coarse_points: int = 4
     #: Points of the pixel-noise line.
     pixel_points: int = 4
-    #: Pattern-search rounds after the coarse grid and the pixel line (6 runs each).
+    #: Step sizes of the compass search after the coarse grid and the pixel line: the
+    #: first is half the coarse spacing, each next one half the one before. A step is
+    #: polled (6 runs: every noise × and ÷ it; after a round that moved the best, one
+    #: more at the same move repeated; one at the maximum of a quadratic fitted to the
+    #: scores near the best) until a round no longer improves the best.
     refine_rounds: int = 3
+    #: At most this many compass rounds in all.
+    max_polls: int = 10
     #: Try the per-axis parabola vertex of the last round as a final candidate.
     parabola: bool = True
 
@@ -221,8 +229,9 @@ class SearchSpace:
             lo, hi = getattr(self, name)
             if not (0 < lo <= hi and math.isfinite(hi)):
                 raise ConfigError(f"search range of {name} must be 0 < low <= high, got {lo!r}..{hi!r}")
-        if self.coarse_points < 2 or self.pixel_points < 1 or self.refine_rounds < 0:
-            raise ConfigError("search: coarse_points >= 2, pixel_points >= 1, refine_rounds >= 0 expected")
+        if self.coarse_points < 2 or self.pixel_points < 1 or self.refine_rounds < 0 or self.max_polls < 0:
+            raise ConfigError("search: coarse_points >= 2, pixel_points >= 1, refine_rounds >= 0, max_polls >= 0 "
+                              "expected")
 
     @property
     def bounds_log10(self) -> np.ndarray:
@@ -231,7 +240,8 @@ class SearchSpace:
 
     @property
     def max_runs(self) -> int:
-        return self.coarse_points**2 + self.pixel_points + 6 * self.refine_rounds + int(self.parabola)
+        polls = self.max_polls if self.refine_rounds else 0
+        return self.coarse_points**2 + self.pixel_points + 8 * polls + int(self.parabola)
 
 
 class NoiseSearch:
@@ -245,10 +255,16 @@ class NoiseSearch:
         best = search.best
 
     Rounds: (0) the coarse log grid of velocity × angular noise at the starting pixel
-    noise; (1) a log line of pixel noise at the best of (0); (2..) pattern search around
+    noise; (1) a log line of pixel noise at the best of (0); (2..) compass search around
     the best so far: each noise multiplied and divided by a step that starts at half the
-    coarse spacing and halves every round; (last) the vertex of the parabola through the
-    last round's three points of each noise, in log space. Candidates evaluated before
+    coarse spacing. The step is kept while the rounds improve the best, so the search
+    walks toward a maximum far from the grid's best point instead of shrinking before it
+    gets there, and halved after a round that does not: ``refine_rounds`` step sizes in
+    all, at most ``max_polls`` rounds. Each round also tries, after a round that moved
+    the best, the same move once more (a Hooke-Jeeves pattern move, along ridges of
+    correlated noises), and the maximum of a quadratic fitted to the scores near the
+    best (:meth:`_quadratic_proposal`). (last) The fitted quadratic's maximum at the
+    smallest step, or else the per-axis parabola vertex. Candidates evaluated before
     (same rounded values) are not run again.
     """
 
@@ -263,8 +279,10 @@ class NoiseSearch:
         self._coarse_step = (b[:2, 1] - b[:2, 0]) / (n - 1)
         self._step: np.ndarray | None = None
         self._stage = "coarse"
-        self._refined = 0
-        self._last_center: Candidate | None = None
+        self._sizes = 0  # step sizes begun
+        self._polls = 0  # compass rounds run
+        self._last_center: Candidate | None = None  # the center of the last compass round
+        self._last_step: np.ndarray | None = None
 
     # --- bookkeeping -----------------------------------------------------------------
     @property
@@ -320,30 +338,85 @@ class NoiseSearch:
             if batch:
                 return batch
         if self._stage == "refine":
-            if self._refined >= sp.refine_rounds:
-                self._stage = "parabola"
-            else:
-                if self._step is None:
+            while True:
+                if self._step is None:  # the first compass round
+                    if sp.refine_rounds == 0:
+                        break
                     self._step = np.array([*self._coarse_step, self._px_step]) / 2
-                else:
+                    self._sizes = 1
+                elif best.candidate == self._last_center:  # the last round did not improve
+                    if self._sizes >= sp.refine_rounds:
+                        break
                     self._step = self._step / 2
-                self._refined += 1
-                self._last_center = best.candidate
+                    self._sizes += 1
+                if self._polls >= sp.max_polls:
+                    break
+                self._polls += 1
                 xs = []
+                if self._last_center is not None and best.candidate != self._last_center:
+                    # Hooke-Jeeves pattern move: the last round's move once more (walks
+                    # along a ridge of correlated noises faster than the compass alone)
+                    xs.append(2 * x0 - self._last_center.log10)
+                self._last_center, self._last_step = best.candidate, self._step.copy()
+                model = self._quadratic_proposal(x0, self._step)
+                if model is not None:
+                    xs.append(model)
                 for d in range(3):
                     for sign in (-1.0, 1.0):
                         x = x0.copy()
                         x[d] += sign * self._step[d]
                         xs.append(x)
                 batch = self._new(xs)
-                return batch if batch else self._plan()
+                if batch:
+                    return batch
+                # every poll point was run before: it cannot improve; next step size
+            self._stage = "parabola"
         if self._stage == "parabola":
             self._stage = "done"
-            if sp.parabola and self._last_center is not None and self._step is not None:
-                x = self._parabola(self._last_center, self._step)
+            if sp.parabola and best is not None and self._last_step is not None:
+                x = self._quadratic_proposal(x0, self._last_step / 2)
+                if x is None:
+                    x = self._parabola(best.candidate, self._last_step)
                 if x is not None:
                     return self._new([x])
         return []
+
+    def _quadratic_proposal(self, x0: np.ndarray, step: np.ndarray) -> np.ndarray | None:
+        """The maximum of a quadratic fitted (weighted least squares, log space scaled by
+        ``step``) to the scores evaluated near ``x0``, at most two steps from ``x0``; None
+        when there are too few points or the fit is not concave."""
+        b = self.space.bounds_log10
+        active = np.nonzero(b[:, 1] > b[:, 0])[0]
+        k = active.size
+        n_par = 1 + k + k * (k + 1) // 2
+        pts = [(s.candidate.log10, s.objective) for s in self.scores.values() if math.isfinite(s.objective)]
+        if len(pts) < n_par + 2:
+            return None
+        X = np.array([p[0] for p in pts])[:, active]
+        y = np.array([p[1] for p in pts])
+        d = (X - x0[active]) / step[active]
+        r2 = np.sum(d * d, axis=1)
+        near = r2 <= 9.0  # within three steps
+        if np.count_nonzero(near) < n_par + 2:
+            return None
+        d, y, w = d[near], y[near], np.exp(-r2[near] / 8.0)
+        iu = np.triu_indices(k)
+        A = np.column_stack([np.ones(len(d)), d, (d[:, :, None] * d[:, None, :])[:, iu[0], iu[1]]])
+        sw = np.sqrt(w)
+        coef, *_ = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)
+        g = coef[1:1 + k]
+        H = np.zeros((k, k))
+        H[iu] = coef[1 + k:]
+        H = H + H.T  # f = c + gᵀd + dᵀ U d with U upper triangular: Hessian U + Uᵀ
+        if not np.all(np.linalg.eigvalsh(H) < 0):
+            return None
+        dstar = -np.linalg.solve(H, g)
+        norm = float(np.linalg.norm(dstar))
+        if norm > 2.0:
+            dstar *= 2.0 / norm
+        x = x0.copy()
+        x[active] += dstar * step[active]
+        return x
 
     def _parabola(self, center: Candidate, step: np.ndarray) -> np.ndarray | None:
         """Per noise, the vertex of the parabola through (−step, 0, +step) around
