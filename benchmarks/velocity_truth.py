@@ -15,7 +15,15 @@ with the file's cam_T_imu), three measurements:
    with.
 3. **IMU-camera rotation fit with the true motion** (vislam check's robust fit, gyro
    bias off): on the file as stored and with cam_T_imu turned by 3° about each camera
-   axis. What a perfect motion source would give the hand-eye fit.
+   axis. What a perfect motion source would give the hand-eye fit. Then the same fit
+   (file as stored) with the recorded velocities, and with one half of the twist
+   recorded and the other true: which part biases check's rotation.
+4. **The frame of the recorded angular rates**: their error against the true body
+   rates, and against the true rates expressed in the levelled (heading-aligned) frame
+   of the linear velocities (the ground truth's world is the first camera's frame:
+   its roll and pitch are fitted first, as benchmarks/velocity_frame.py does), with the
+   correlation of the pitch-rate error with the yaw rate (a levelled rate read as a
+   body rate is off by the tilt times the yaw rate).
 
 Usage::
 
@@ -25,15 +33,18 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from vislam.core.check import _fit_rotation_and_bias, _TrackPairs, level_velocities_to_body
 from vislam.core.corrections import rotate_cam_T_imu
-from vislam.core.lie import se3_inverse, se3_log, so3_log
+from vislam.core.lie import se3_inverse, se3_log, so3_exp, so3_log
 from vislam.tools.dataset_io import load_sequence
 from vislam.tools.evaluation import load_ground_truth
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/velocity_frame.py
 
 FILES = [("sparse/0020", "0020"), ("sparse/0027", "0027"), ("dense/0027", "0027")]
 
@@ -91,6 +102,41 @@ def rotation_with_truth(seq, u_true: np.ndarray, n: int, rng) -> None:
               f"{np.array2string(np.degrees(x[:3]), precision=2)}°, |φ| {np.degrees(np.linalg.norm(x[:3])):.2f}°")
 
 
+def rotation_sources(seq, u_true: np.ndarray, n: int, rng) -> None:
+    pairs = _TrackPairs(seq, 5, 60.0, None, rng)
+    keep = pairs.frame + pairs.lag < n
+    for name in ("frame", "lag", "landmark", "points", "target"):
+        setattr(pairs, name, getattr(pairs, name)[keep])
+    pairs = pairs.subset(4000, rng)
+    u_rec = level_velocities_to_body(seq.velocities())
+    for label, u in (("recorded velocities", u_rec),
+                     ("true linear + recorded angular", np.concatenate([u_true[:, :3], u_rec[:, 3:]], axis=1)),
+                     ("recorded linear + true angular", np.concatenate([u_rec[:, :3], u_true[:, 3:]], axis=1))):
+        x, _, _ = _fit_rotation_and_bias(pairs, seq.timestamps_s, u, np.array(seq.cam_T_imu), 1, 3.0, np.zeros(3),
+                                         fit_bias=False)
+        print(f"  rotation fit with the {label}: correction {np.array2string(np.degrees(x[:3]), precision=2)}°")
+
+
+def rate_frame(seq, world_T_imu: np.ndarray) -> None:
+    from velocity_frame import _yaw_only, vertical_speed_check  # noqa: E402 (this folder)
+
+    n = min(len(world_T_imu), seq.n_frames)
+    W = world_T_imu[:n]
+    _, _, (roll, pitch) = vertical_speed_check(seq, W)
+    R0 = so3_exp(np.array([0.0, np.radians(pitch), 0.0])) @ so3_exp(np.array([np.radians(roll), 0.0, 0.0]))
+    rel = se3_inverse(W[:-1]) @ W[1:]
+    w_body = so3_log(rel[:, :3, :3]) / np.diff(seq.timestamps_s[:n])[:, None]
+    R = R0 @ W[:-1, :3, :3]
+    level_R_body = np.einsum("kji,kjl->kil", _yaw_only(R), R)
+    w_level = np.einsum("kij,kj->ki", level_R_body, w_body)
+    w_rec = seq.angular_velocity_in_imu_radps[1:n]
+    for label, w in (("true body rates", w_body), ("true rates in the levelled frame", w_level)):
+        e = w_rec - w
+        print(f"  recorded angular rates against the {label}: RMS per axis "
+              f"{np.array2string(np.sqrt(np.mean(e ** 2, axis=0)), precision=4)} rad/s; correlation of the "
+              f"pitch-rate error with the yaw rate {np.corrcoef(e[:, 1], w_body[:, 2])[0, 1]:+.2f}")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
@@ -108,6 +154,9 @@ def main(argv=None) -> int:
         velocity_errors(seq, world_T_imu)
         reprojection(seq, u_true, n, np.random.default_rng(0))
         rotation_with_truth(seq, u_true, n, np.random.default_rng(0))
+        rotation_sources(seq, u_true, n, np.random.default_rng(0))
+        if file.startswith("sparse"):  # the dense files' rates carry 0.05 rad/s of white noise
+            rate_frame(seq, world_T_imu)
     return 0
 
 
