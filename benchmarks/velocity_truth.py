@@ -84,12 +84,17 @@ def reprojection(seq, u_true: np.ndarray, n: int, rng) -> None:
               f"({d.size} predictions)")
 
 
-def rotation_with_truth(seq, u_true: np.ndarray, n: int, rng) -> None:
+def _fit_pairs(seq, n: int, rng) -> _TrackPairs:
+    """check's prediction pairs within the frames with ground truth, 4000 at random."""
     pairs = _TrackPairs(seq, 5, 60.0, None, rng)
     keep = pairs.frame + pairs.lag < n
     for name in ("frame", "lag", "landmark", "points", "target"):
         setattr(pairs, name, getattr(pairs, name)[keep])
-    pairs = pairs.subset(4000, rng)
+    return pairs.subset(4000, rng)
+
+
+def rotation_with_truth(seq, u_true: np.ndarray, n: int, rng) -> None:
+    pairs = _fit_pairs(seq, n, rng)
     for axis in (None, 0, 1, 2):
         C = np.array(seq.cam_T_imu)
         if axis is not None:
@@ -103,11 +108,7 @@ def rotation_with_truth(seq, u_true: np.ndarray, n: int, rng) -> None:
 
 
 def rotation_sources(seq, u_true: np.ndarray, n: int, rng) -> None:
-    pairs = _TrackPairs(seq, 5, 60.0, None, rng)
-    keep = pairs.frame + pairs.lag < n
-    for name in ("frame", "lag", "landmark", "points", "target"):
-        setattr(pairs, name, getattr(pairs, name)[keep])
-    pairs = pairs.subset(4000, rng)
+    pairs = _fit_pairs(seq, n, rng)
     u_rec = level_velocities_to_body(seq.velocities())
     for label, u in (("recorded velocities", u_rec),
                      ("true linear + recorded angular", np.concatenate([u_true[:, :3], u_rec[:, 3:]], axis=1)),
