@@ -8,6 +8,7 @@ modified):
   about the IMU x axis (y and z flipped);
 * ``b-shift+1``: velocity samples shifted by one index (sample k holds sample k+1);
 * ``c-rot3<axis>``: cam_T_imu's rotation turned by 3° about a camera axis (x, y or z);
+* ``d-kmh``: linear velocities times 3.6 (speeds in km/h stored as m/s);
 
 it runs the check (as ``vislam check`` does: load the file, check_sequence) and prints
 a Markdown table: the findings that are not OK, the rotation error, the association,
@@ -52,6 +53,7 @@ def variants(seq):
         phi = np.zeros(3)
         phi[i] = 3.0
         yield f"c-rot3{axis}", seq.replace(cam_T_imu=rotate_cam_T_imu(seq.cam_T_imu, phi)), "imu-camera-rotation 3°"
+    yield "d-kmh", seq.replace(linear_velocity_in_imu_mps=3.6 * seq.linear_velocity_in_imu_mps), "velocity-scale"
 
 
 def row(file: str, variant: str, expected: str, path: Path) -> dict:
@@ -70,6 +72,8 @@ def row(file: str, variant: str, expected: str, path: Path) -> dict:
         "body_roll_sensitivity_deg": e.get("body_roll_sensitivity_deg"),
         "best_shift": assoc.get("best_shift"), "association_z": assoc.get("z_vs_next"),
         "time_offset_s": e.get("time_offset_s"), "time_offset_s_se": e.get("time_offset_s_se"),
+        "velocity_scale": e.get("velocity_scale"), "velocity_scale_se": e.get("velocity_scale_se"),
+        "moving_landmarks": {k: v for k, v in (e.get("moving_landmarks") or {}).items() if k != "landmark_ids"},
         "velocity_noise_mps": e["imu_noise"]["velocity_mps"], "angular_noise_radps": e["imu_noise"]["angular_radps"],
         "gyro_bias_radps": e.get("gyro_bias_radps"),
         "reprojection_before_px": e.get("reprojection_before_px"),
@@ -83,9 +87,9 @@ def _f(x, spec=".2f"):
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| file | variant | not OK | rot. error (deg) | shift (z) | time offset (ms) | σv (m/s) | σω (rad/s) | "
-             "reproj. median before/after (px) | time (s) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| file | variant | not OK | rot. error (deg) | shift (z) | speed factor | time offset (ms) | σv (m/s) | "
+             "σω (rad/s) | reproj. median before/after (px) | time (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         b = (r["reprojection_before_px"] or {}).get("median")
         a = (r["reprojection_after_px"] or {}).get("median")
@@ -93,7 +97,7 @@ def table(rows: list[dict]) -> str:
         lines.append(
             f"| {r['file']} | {r['variant']} | {', '.join(r['not_ok']) or '—'} | "
             f"{_f(r['rotation_error_deg'])} ± {_f(r['rotation_error_deg_se'])} | "
-            f"{r['best_shift']} ({_f(r['association_z'], '.1f')}) | "
+            f"{r['best_shift']} ({_f(r['association_z'], '.1f')}) | {_f(r['velocity_scale'], '.3f')} | "
             f"{_f(None if toff is None else 1000 * toff, '.0f')} ± "
             f"{_f(None if r['time_offset_s_se'] is None else 1000 * r['time_offset_s_se'], '.0f')} | "
             f"{', '.join(format(v, '.3f') for v in r['velocity_noise_mps'])} | "

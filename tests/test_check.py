@@ -24,7 +24,7 @@ from conftest import shared_file
 
 SIM = SimulationOptions(seed=3, n_frames=250)
 FAST = CheckOptions(max_pairs=8000)
-CONVENTION_CODES = ("imu-camera-rotation", "velocity-association", "time-offset", "imu-bias")
+CONVENTION_CODES = ("imu-camera-rotation", "velocity-association", "velocity-scale", "time-offset", "imu-bias")
 
 
 def _check(**faults):
@@ -104,6 +104,36 @@ def test_velocity_samples_one_index_early_suggest_the_current_association():
     assert result.suggested["velocity_association"] == "current"
     assert result.estimates["velocity_association"]["best_shift"] == 0
     assert _severity(result, "imu-camera-rotation") == "OK"
+
+
+@pytest.mark.parametrize("factor, unit", [(3.6, "km/h"), (1 / 0.44704, "mph"), (1.1, None), (1 / 1.1, None)])
+def test_a_velocity_scale_is_estimated_named_and_corrected(factor, unit):
+    """Speeds recorded in km/h or mph (or a 10 % scale error) are found as a scale, not
+    mistaken for a rotation error (before the scale was searched, 1/3.6 on a shared file
+    read as an 11° rotation ERROR), and the suggestion undoes them."""
+    drive, result = _check(velocity_scale=factor)
+    assert _severity(result, "velocity-scale") == "WARN"
+    assert result.estimates["velocity_scale"] == pytest.approx(1 / factor, rel=0.02)
+    assert (f"speeds in {unit}?" in result.finding("velocity-scale").message) == (unit is not None)
+    if unit is not None:  # the unit's exact factor
+        assert result.suggested["velocity_scale"] == pytest.approx(1 / factor, rel=1e-5)
+    assert _severity(result, "imu-camera-rotation") == "OK"
+    assert _severity(result, "velocity-association") == "OK"
+    fixed = apply_corrections(drive.sequence, result.suggested_options())
+    truth = simulate_drive(SIM).sequence
+    np.testing.assert_allclose(fixed.linear_velocity_in_imu_mps, truth.linear_velocity_in_imu_mps,
+                               rtol=0.02, atol=1e-9)
+    assert result.estimates["reprojection_after_px"]["median"] < 0.8 * result.estimates["reprojection_before_px"]["median"]
+
+
+def test_velocity_scale_option_multiplies_the_speeds_before_the_bias():
+    seq = simulate_drive(SIM.replace(n_frames=20)).sequence
+    out = apply_corrections(seq, FilterOptions(velocity_scale=0.5, velocity_bias_mps=(0.1, 0.0, 0.0)))
+    np.testing.assert_allclose(out.linear_velocity_in_imu_mps, seq.linear_velocity_in_imu_mps * 0.5 - [0.1, 0, 0])
+    np.testing.assert_array_equal(out.angular_velocity_in_imu_radps, seq.angular_velocity_in_imu_radps)
+    for bad in (0, -1.0, float("nan"), True, "2"):
+        with pytest.raises(ConfigError):
+            FilterOptions(velocity_scale=bad)
 
 
 def test_extrinsic_rotation_error_and_gyro_bias_are_estimated_together():
@@ -336,6 +366,9 @@ def test_cli_simulate_fault_flags(tmp_path):
     np.testing.assert_allclose(seq.angular_velocity_in_imu_radps, expected, atol=1e-12)
     with pytest.raises(SystemExit):  # argparse: usage message and exit code 2
         main(["simulate", "--out", str(out), "--gyro-bias", "1,2"])
+    assert main(["simulate", "--out", str(tmp_path / "kmh"), "--frames", "30", "--velocity-scale", "3.6"]) == 0
+    kmh = load_sequence(tmp_path / "kmh" / "sequence.npz")
+    np.testing.assert_allclose(kmh.linear_velocity_in_imu_mps, 3.6 * truth.linear_velocity_in_imu_mps, rtol=1e-12)
 
 
 def test_simulation_faults_default_off_and_validated():
@@ -369,3 +402,14 @@ def test_landmarks_on_moving_vehicles_are_left_out_of_the_convention_checks():
     result = check_sequence(turned.sequence, FAST)
     assert _severity(result, "imu-camera-rotation") == "ERROR"
     assert result.estimates["imu_camera_rotation_error_deg"] == pytest.approx(180.0, abs=1.0)
+
+
+def test_landmark_medians_match_numpy_per_group():
+    from vislam.core.check import _landmark_medians
+
+    rng = np.random.default_rng(1)
+    landmark = rng.integers(0, 40, 700)
+    d = rng.exponential(3.0, 700)
+    ids, med, inv = _landmark_medians(landmark, d)
+    np.testing.assert_array_equal(ids[inv], landmark)
+    np.testing.assert_allclose(med, [np.median(d[landmark == i]) for i in ids], rtol=0, atol=0)

@@ -31,6 +31,7 @@ _FLAGS = {
     "velocity_shift": "velocity_shift",
     "time_offset": "time_offset_s",
     "gyro_bias": "gyro_bias_radps",
+    "velocity_scale": "velocity_scale",
 }
 
 
@@ -83,6 +84,8 @@ def register(subparsers) -> None:
                         help="the velocity sample stamped t describes the motion at t+S (s)")
     faults.add_argument("--gyro-bias", type=_three_numbers, default=_DEFAULTS.gyro_bias_radps, metavar="X,Y,Z",
                         help="constant bias added to the angular velocities (rad/s, IMU axes)")
+    faults.add_argument("--velocity-scale", type=float, default=_DEFAULTS.velocity_scale, metavar="F",
+                        help="record the linear velocities times F (e.g. 3.6: km/h stored as m/s)")
     parser.set_defaults(func=run)
 
 

@@ -80,8 +80,8 @@ logger = logging.getLogger(__name__)
 
 SEVERITIES = ("OK", "WARN", "ERROR")
 #: Stable codes of the findings, in the order they are reported.
-FINDING_CODES = ("imu-camera-rotation", "velocity-association", "time-offset", "imu-bias", "noise", "pixel-noise",
-                 "reprojection", "repeated-observations", "disparity")
+FINDING_CODES = ("imu-camera-rotation", "velocity-association", "velocity-scale", "time-offset", "imu-bias", "noise",
+                 "pixel-noise", "reprojection", "repeated-observations", "disparity")
 
 
 @dataclass(frozen=True)
@@ -103,6 +103,17 @@ class CheckOptions:
     #: 19 of 44 landmarks, 70 % of the predictions (median 42 px, 2.0 px without them); on
     #: the other shared files 0-4 % of the landmarks. None: keep every landmark.
     moving_landmark_px: float | None = 12.0
+    #: Predictions (a random subset) scored for each start of the fit (rotation x factor).
+    start_pairs: int = 5000
+    #: Factors on the linear velocities searched (a unit mistake: km/h stored as m/s is
+    #: 3.6, mph 2.24); () searches none, the velocities are taken as metric.
+    velocity_scale_range: tuple[float, float] = (0.2, 5.0)
+    #: A factor further than this from 1 (and beyond 3σ) is reported and corrected.
+    velocity_scale_warn: float = 0.05
+    #: Systematic uncertainty of the factor, added in quadrature: the KITTI files' speeds
+    #: are off the true motion by 1 % on average and 0.3 m/s RMS, slowly varying
+    #: (benchmarks/velocity_truth.py).
+    velocity_scale_floor: float = 0.01
     #: IMU-camera rotation errors above this angle (deg) are an axis-convention mismatch (ERROR).
     rotation_error_deg: float = 10.0
     #: ... and above this one (and significant at 99 %) a calibration error worth correcting (WARN).
@@ -415,26 +426,33 @@ def roll_tilted(u: np.ndarray, gain: float, axes) -> np.ndarray:
 
 
 def _fit_rotation_and_bias(pairs: _TrackPairs, timestamps, u, cam_T_imu, shift: int, scale: float,
-                           phi0: np.ndarray, fit_bias: bool = True):
-    """Least squares (Cauchy loss) over φ (camera-frame rotation vector, rad) and, with
-    ``fit_bias``, the gyro bias b. Returns (x (6,), cov (6, 6), cost); without the bias
-    its entries are 0 and its covariance NaN."""
+                           phi0: np.ndarray, fit_bias: bool = True, fit_scale: bool = False,
+                           log_scale0: float = 0.0):
+    """Least squares (Cauchy loss) over φ (camera-frame rotation vector, rad), with
+    ``fit_bias`` the gyro bias b, and with ``fit_scale`` the log of a factor on the
+    linear velocities (started at ``log_scale0``; held there otherwise). Returns
+    (x (6,), cov (6, 6), cost, (log scale, its variance)); without the bias its entries
+    are 0 and its covariance NaN, without the scale its variance is NaN."""
     from scipy.optimize import least_squares
 
-    n_par = 6 if fit_bias else 3
+    n_rb = 6 if fit_bias else 3
+    n_par = n_rb + int(fit_scale)
 
     def fun(x):
         ub = u.copy()
         if fit_bias:
-            ub[:, 3:] -= x[3:]
+            ub[:, 3:] -= x[3:6]
+        ub[:, :3] *= math.exp(x[n_rb] if fit_scale else log_scale0)
         rel = pairs.relative_imu(timestamps, ub, shift)
         C = cam_T_imu.copy()
         C[:3, :3] = so3_exp(x[:3]) @ cam_T_imu[:3, :3]
         return pairs.residuals(rel, C).ravel()
 
-    x0 = np.concatenate([phi0, np.zeros(3)])[:n_par]
-    sol = least_squares(fun, x0, loss="cauchy", f_scale=scale, x_scale=np.array([0.01] * 3 + [0.001] * 3)[:n_par],
-                        diff_step=1e-4, max_nfev=40)
+    x0 = np.concatenate([phi0, np.zeros(3)])[:n_rb]
+    x_scale = np.array([0.01] * 3 + [0.001] * 3)[:n_rb]
+    if fit_scale:
+        x0, x_scale = np.append(x0, log_scale0), np.append(x_scale, 0.01)
+    sol = least_squares(fun, x0, loss="cauchy", f_scale=scale, x_scale=x_scale, diff_step=1e-4, max_nfev=40)
     J = sol.jac
     r = sol.fun.reshape(-1, 4)
     # Sandwich covariance with the robust (IRLS) weights of the Cauchy loss at the
@@ -442,7 +460,7 @@ def _fit_rotation_and_bias(pairs: _TrackPairs, timestamps, u, cam_T_imu, shift: 
     # nearby frames share the same velocity samples, so their errors are correlated.
     w = np.repeat(1.0 / (1.0 + (np.linalg.norm(r, axis=1) / scale) ** 2), 4)
     H = J.T @ (w[:, None] * J)
-    scores = J * (w * sol.fun)[:, None]  # (4P, 6)
+    scores = J * (w * sol.fun)[:, None]  # (4P, n_par)
     group = np.repeat(pairs.frame // (2 * pairs.window + 1), 4)
     _, inv = np.unique(group, return_inverse=True)
     g = np.zeros((inv.max() + 1, J.shape[1]))
@@ -453,10 +471,28 @@ def _fit_rotation_and_bias(pairs: _TrackPairs, timestamps, u, cam_T_imu, shift: 
     except np.linalg.LinAlgError:
         cov_fit = np.full((n_par, n_par), np.nan)
     x = np.zeros(6)
-    x[:n_par] = sol.x
+    x[:n_rb] = sol.x[:n_rb]
     cov = np.full((6, 6), np.nan)
-    cov[:n_par, :n_par] = cov_fit
-    return x, cov, float(np.sum(_cauchy_cost(r, scale)))
+    cov[:n_rb, :n_rb] = cov_fit[:n_rb, :n_rb]
+    log_s = (float(sol.x[n_rb]), float(cov_fit[n_rb, n_rb])) if fit_scale else (float(log_scale0), float("nan"))
+    return x, cov, float(np.sum(_cauchy_cost(r, scale))), log_s
+
+
+def _landmark_medians(landmark: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ids, median of ``d`` per landmark, index of each entry's landmark)."""
+    lms, inv = np.unique(landmark, return_inverse=True)
+    if lms.size == 0:
+        return lms, np.zeros(0), inv
+    d_sorted = d[np.lexsort((d, inv))]  # by landmark, then value
+    counts = np.bincount(inv, minlength=lms.size)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    med = 0.5 * (d_sorted[starts + (counts - 1) // 2] + d_sorted[starts + counts // 2])
+    return lms, med, inv
+
+
+def _landmark_inliers(landmark: np.ndarray, d: np.ndarray, px: float) -> int:
+    """How many landmarks reproject with a median left distance within ``px``."""
+    return int(np.count_nonzero(_landmark_medians(landmark, d)[1] <= px))
 
 
 def _moving_landmarks(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi: np.ndarray,
@@ -464,7 +500,7 @@ def _moving_landmarks(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi: np.ndar
     """The landmarks whose predictions (rotation ``phi``, association "next") reproject
     with a median left-image distance above ``threshold_px`` and above 4x the first
     quartile of the landmarks' medians (see CheckOptions.moving_landmark_px)."""
-    lms, inv = np.unique(pairs.landmark, return_inverse=True)
+    lms = np.unique(pairs.landmark)
     out: dict[str, Any] = {"landmarks": 0, "of_landmarks": int(lms.size), "predictions_share": 0.0,
                            "landmark_ids": []}
     if threshold_px is None or lms.size == 0:
@@ -472,13 +508,52 @@ def _moving_landmarks(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi: np.ndar
     C = cam_T_imu.copy()
     C[:3, :3] = so3_exp(phi) @ cam_T_imu[:3, :3]
     d = _left_distance(pairs.residuals(pairs.relative_imu(timestamps, u, 1), C))
-    order = np.argsort(inv, kind="stable")
-    starts = np.searchsorted(inv[order], np.arange(lms.size))
-    med = np.array([np.median(chunk) for chunk in np.split(d[order], starts[1:])])
+    lms, med, inv = _landmark_medians(pairs.landmark, d)
     bad = med > max(float(threshold_px), 4.0 * float(np.percentile(med, 25)))
     out.update(landmarks=int(bad.sum()), predictions_share=float(np.mean(bad[inv])),
                landmark_ids=lms[bad].tolist())
     return out
+
+
+#: Units a speed may have been recorded in by mistake: (recorded value per m/s, name).
+_SPEED_UNITS = ((3.6, "km/h"), (1 / 0.44704, "mph"), (1 / 0.514444, "knots"), (100.0, "cm/s"), (1000.0, "mm/s"))
+
+
+def _velocity_scale_finding(k: float, k_se: float | None, opts: CheckOptions, suggested: dict,
+                            noise_to_speed: float = 0.0) -> Finding:
+    """The velocity-scale finding for the fitted factor ``k`` (corrected = recorded x k);
+    adds ``velocity_scale`` (and rescales a suggested velocity noise) to ``suggested``.
+    ``noise_to_speed`` (white noise over the median speed) widens the tolerance: noise in
+    the velocities biases the fitted factor low (dense 0027 / 0022 / 0034: 0.97 / 0.97 /
+    0.94 at 0.5 m/s per axis, against 0.995 on the clean sparse 0027)."""
+    se_txt = f" ± {k_se:.3f}" if k_se is not None else ""
+    if k_se is None or abs(k - 1.0) <= max(opts.velocity_scale_warn, 3 * k_se, noise_to_speed):
+        return Finding("velocity-scale", "OK", f"the speeds match the motion the camera sees (factor {k:.3f}{se_txt}); "
+                                               f"nothing to do")
+    # a unit mistake is corrected with the unit's exact factor (the fit is within ~1 %)
+    tolerance = max(0.05, noise_to_speed)
+    unit = next(((factor, name) for factor, name in _SPEED_UNITS if abs(math.log(1 / k / factor)) < tolerance), None)
+    suggested["velocity_scale"] = float(f"{1 / unit[0]:.6g}") if unit else float(f"{k:.4g}")
+    if "velocity_noise_mps" in suggested:  # estimated in the recording's units
+        suggested["velocity_noise_mps"] = [float(f"{v * suggested['velocity_scale']:.3g}")
+                                           for v in suggested["velocity_noise_mps"]]
+    hint = f" (speeds in {unit[1]}? its exact factor is suggested)" if unit else ""
+    return Finding("velocity-scale", "WARN",
+                   f"the recorded speeds are {1 / k:.3g}x the motion the camera sees{hint} (factor {k:.4g}{se_txt} "
+                   f"to m/s): run with the suggested velocity_scale")
+
+
+def _scale_grid(value_range: tuple[float, float]) -> list[float]:
+    """Factors on the linear velocities tried at the start of the fit: 1 first, then a
+    log grid over ``value_range`` (about 12 % apart)."""
+    if not value_range:
+        return [1.0]
+    lo, hi = value_range
+    if not lo < 1.0 < hi:
+        return [1.0]
+    n = int(math.ceil(math.log(hi / lo) / math.log(1.12))) + 1
+    grid = np.exp(np.linspace(math.log(lo), math.log(hi), n))
+    return [1.0] + [float(k) for k in grid if abs(math.log(k)) > 0.05]
 
 
 def _starts() -> list[np.ndarray]:
@@ -659,34 +734,68 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
         scale = max(scale, 1.5 * float(np.median(np.linalg.norm(r_before, axis=1))))
 
         # rotation (+ bias): best start, then a robust fit. The start with the most
-        # predictions within moving_landmark_px (a consensus: with traffic alongside,
-        # most predictions may belong to vehicles), ties broken by the robust cost.
+        # landmarks whose predictions reproject within moving_landmark_px (median): a
+        # consensus of landmarks rather than of predictions, because with traffic
+        # alongside most predictions may belong to a few long-tracked vehicles (sparse
+        # 0042: 70 % of the predictions, 43 % of the landmarks), which a wrong velocity
+        # factor would make look static. Ties: predictions within, then the robust cost.
+        # The linear velocities' scale is searched too (a unit mistake, km/h stored as
+        # m/s, would otherwise look like a rotation error): a log grid of factors.
+        inlier_px = opts.moving_landmark_px if opts.moving_landmark_px is not None else 12.0
+        starts = [(phi0, k) for k in _scale_grid(opts.velocity_scale_range) for phi0 in _starts()]
+        few = pairs.subset(opts.start_pairs, np.random.default_rng(opts.seed))  # the search: a subset suffices
+        rel_few = few.relative_imu(ts, u, 1)
         costs = []
-        for phi0 in _starts():
+        for phi0, k in starts:
             C = C0.copy()
             C[:3, :3] = so3_exp(phi0) @ C0[:3, :3]
-            r0 = pairs.residuals(rel0, C)
-            inliers = 0 if opts.moving_landmark_px is None else \
-                int(np.count_nonzero(_left_distance(r0) <= opts.moving_landmark_px))
-            costs.append((-inliers, float(np.sum(_cauchy_cost(r0, scale)))))
-        phi_start = _starts()[min(range(len(costs)), key=costs.__getitem__)]
+            if k == 1.0:
+                r0 = few.residuals(rel_few, C)
+            else:
+                uk = u.copy()
+                uk[:, :3] *= k
+                r0 = few.residuals(few.relative_imu(ts, uk, 1), C)
+            d0 = _left_distance(r0)
+            costs.append((-_landmark_inliers(few.landmark, d0, inlier_px), -int(np.count_nonzero(d0 <= inlier_px)),
+                          float(np.sum(_cauchy_cost(r0, scale)))))
+        phi_start, k_start = starts[min(range(len(costs)), key=costs.__getitem__)]
+        if k_start != 1.0:  # the loss scale from the residuals at that factor
+            u_start = u.copy()
+            u_start[:, :3] *= k_start
+            C = C0.copy()
+            C[:3, :3] = so3_exp(phi_start) @ C0[:3, :3]
+            r_start = pairs.residuals(pairs.relative_imu(ts, u_start, 1), C)
+            scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_start, axis=1))))
+        else:
+            u_start = u
 
         # landmarks that do not follow the world's motion (traffic, mismatched tracks),
         # judged at the best start: left out of the fits
-        moving = _moving_landmarks(all_pairs, ts, u, C0, phi_start, opts.moving_landmark_px)
+        moving = _moving_landmarks(all_pairs, ts, u_start, C0, phi_start, opts.moving_landmark_px)
         est["moving_landmarks"] = moving
         if moving["landmarks"]:
             ids = np.asarray(moving["landmark_ids"])
             keep = ~np.isin(pairs.landmark, ids)
             keep_all = ~np.isin(all_pairs.landmark, ids)
             if np.count_nonzero(keep) >= 30:
+                if k_start == 1.0:
+                    scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_before[keep], axis=1))))
+                else:
+                    scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_start[keep], axis=1))))
                 pairs, all_pairs = pairs.select(keep), all_pairs.select(keep_all)
                 est["reprojection_before_static_px"] = _percentiles(_left_distance(r_before[keep]))
-                scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_before[keep], axis=1))))
-                rel0 = pairs.relative_imu(ts, u, 1)
             else:
                 moving["kept"] = "fewer than 30 predictions would remain: every landmark kept"
-        x, cov, _ = _fit_rotation_and_bias(pairs, ts, u, C0, 1, scale, phi_start, opts.fit_gyro_bias)
+        x, cov, _, (log_k, log_k_var) = _fit_rotation_and_bias(pairs, ts, u, C0, 1, scale, phi_start, opts.fit_gyro_bias,
+                                                               fit_scale=True, log_scale0=math.log(k_start))
+        # the linear velocities' factor: everything below sees the velocities times it
+        k_hat = math.exp(log_k)
+        k_se = k_hat * math.sqrt(log_k_var) if math.isfinite(log_k_var) and log_k_var >= 0 else None
+        k_se = math.hypot(k_se, opts.velocity_scale_floor) if k_se is not None else None
+        est["velocity_scale"] = k_hat
+        est["velocity_scale_se"] = k_se
+        u = u.copy()
+        u[:, :3] *= k_hat
 
         # association: the shift with the smallest cost at that rotation and bias
         def shifted_cost(s: int, phi: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -700,7 +809,7 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
         totals = {s: float(np.sum(c)) for s, c in shift_costs.items()}
         shift = min(totals, key=totals.get)
         if shift != 1:  # refit rotation and bias with the chosen association
-            x, cov, _ = _fit_rotation_and_bias(pairs, ts, u, C0, shift, scale, x[:3], opts.fit_gyro_bias)
+            x, cov, _, _ = _fit_rotation_and_bias(pairs, ts, u, C0, shift, scale, x[:3], opts.fit_gyro_bias)
             shift_costs = {s: shifted_cost(s, x[:3], x[3:]) for s in shift_costs}
             totals = {s: float(np.sum(c)) for s, c in shift_costs.items()}
             shift = min(totals, key=totals.get)
@@ -724,7 +833,7 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
         axes = vehicle_axes(u) if opts.roll_gradient_prior_deg_per_mps2 > 0 else None
         if axes is not None:
             u_tilt = roll_tilted(u, math.radians(opts.roll_gradient_prior_deg_per_mps2), axes)
-            x_tilt, _, _ = _fit_rotation_and_bias(pairs, ts, u_tilt, C0, shift, scale, phi, opts.fit_gyro_bias)
+            x_tilt, _, _, _ = _fit_rotation_and_bias(pairs, ts, u_tilt, C0, shift, scale, phi, opts.fit_gyro_bias)
             d_phi = x_tilt[:3] - phi
             phi_cov = phi_cov + np.outer(d_phi, d_phi)
             est["body_roll_sensitivity_deg"] = np.degrees(d_phi).tolist()
@@ -785,6 +894,7 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
                 est[key] = None
             est["gyro_bias_visual_radps"] = [None] * 3
             est["gyro_bias_visual_radps_se"] = [None] * 3
+            est["velocity_scale"] = est["velocity_scale_se"] = None
         elif angle > opts.rotation_error_deg:
             findings.append(Finding("imu-camera-rotation", "ERROR",
                                     f"the velocities and cam_T_imu disagree by a {angle:.1f}{se_txt}° rotation "
@@ -831,6 +941,9 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
                 findings.append(Finding("velocity-association", "OK",
                                         "the sample of frame k+1 describes the interval k -> k+1 (the filter's "
                                         f"convention; offset {effective * 1000:.0f} ms); nothing to do"))
+            speed = float(np.median(np.linalg.norm(sequence.linear_velocity_in_imu_mps, axis=1)))
+            noise = float(np.linalg.norm(np.nan_to_num(sv)))
+            findings.append(_velocity_scale_finding(k_hat, k_se, opts, suggested, noise / speed if speed > 0 else 0.0))
             ts_txt = f" ± {time_se * 1000:.0f}" if time_se is not None else ""
             if time_se is not None and abs(frac) > max(opts.time_offset_warn_s, 3 * time_se):
                 suggested["time_offset_s"] = round(suggested.get("time_offset_s", 0.0) + frac, 4)
@@ -844,7 +957,7 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
                                         f"(estimate {frac * 1000:.0f}{ts_txt} ms); nothing to do"))
     else:
         notes.append(f"only {pairs.n_pairs} track predictions: rotation, association and time offset not checked")
-        for code in ("imu-camera-rotation", "velocity-association", "time-offset"):
+        for code in ("imu-camera-rotation", "velocity-association", "velocity-scale", "time-offset"):
             findings.append(Finding(code, "WARN", f"not enough in-sync stereo tracks ({pairs.n_pairs} predictions) "
                                                   f"to check this; the recording's conventions are assumed"))
         est["imu_camera_rotation_error_deg"] = None

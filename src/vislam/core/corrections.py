@@ -15,7 +15,8 @@ In this order:
 2. ``time_offset_s = δ``: the sample stamped t describes the motion at t + δ, so the
    velocity at frame time t_k is the recording's signal at t_k − δ (linear
    interpolation between samples, held constant beyond the ends).
-3. ``gyro_bias_radps`` / ``velocity_bias_mps`` are subtracted from every sample.
+3. ``velocity_scale = s``: every linear-velocity sample is multiplied by s; then
+   ``gyro_bias_radps`` / ``velocity_bias_mps`` are subtracted from every sample.
 4. ``cam_T_imu`` (a 4x4 override) replaces the recording's transform; then
    ``imu_camera_rotation_correction_deg = φ`` (rotation vector in the camera frame,
    degrees) turns its rotation block: ``R ← exp(φ) R``. The translation, the IMU origin
@@ -82,6 +83,9 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
         u = shift_to_current_association(u)
     if options.time_offset_s:
         u = resample_velocities(sequence.timestamps_s, u, options.time_offset_s)
+    if options.velocity_scale != 1.0:
+        u = u.copy()
+        u[:, :3] *= options.velocity_scale
     u = u - np.concatenate([np.asarray(options.velocity_bias_mps), np.asarray(options.gyro_bias_radps)])
     cam_T_imu = np.array(options.cam_T_imu, dtype=np.float64) if options.cam_T_imu is not None else sequence.cam_T_imu
     cam_T_imu = rotate_cam_T_imu(cam_T_imu, options.imu_camera_rotation_correction_deg)

@@ -236,6 +236,8 @@ class SimulationOptions:
     time_offset_s: float = 0.0
     #: Constant gyro bias added to every angular-velocity sample (rad/s, IMU x, y, z).
     gyro_bias_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: Recorded linear velocity = true one times this (e.g. 3.6: km/h stored as if m/s).
+    velocity_scale: float = 1.0
     #: The frame of the recorded linear velocities: "level" (default; heading-aligned and
     #: levelled, z up, as an INS reports them and as the KITTI files hold them, see
     #: FilterOptions.velocity_frame) or "body" (the IMU frame). Sample k is turned with
@@ -251,6 +253,12 @@ class SimulationOptions:
                 continue
             if f.name in ("time_offset_s", "velocity_shift"):
                 _check_fault_scalar(self, f.name, value)
+                continue
+            if f.name == "velocity_scale":
+                if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                        or not math.isfinite(value) or not 0.01 <= value <= 100:
+                    raise ConfigError(f"velocity_scale must be a number in [0.01, 100], got {value!r}")
+                object.__setattr__(self, f.name, float(value))
                 continue
             if f.name == "velocity_frame":
                 if value not in ("body", "level"):
@@ -328,7 +336,7 @@ class SimulationOptions:
     @property
     def has_recording_faults(self) -> bool:
         return (any(self.imu_frame_rotation_deg) or any(self.extrinsic_error_deg) or self.velocity_shift != 0
-                or self.time_offset_s != 0 or any(self.gyro_bias_radps))
+                or self.time_offset_s != 0 or any(self.gyro_bias_radps) or self.velocity_scale != 1.0)
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any], source: str = "options") -> "SimulationOptions":
@@ -380,7 +388,7 @@ def _apply_recording_faults(opts: SimulationOptions, timestamps: np.ndarray, mea
 
     In this order: time offset (the sample stamped t is the signal at t + δ, linear
     interpolation, constant beyond the ends), index shift (sample k is sample k + shift),
-    gyro bias (added), the frame of the velocities (coordinates in the turned frame,
+    gyro bias (added), velocity scale (linear velocities multiplied), the frame of the velocities (coordinates in the turned frame,
     ``Rᵀ u``), the extrinsic error (rotation block ``exp(φ) R``).
     """
     from vislam.core.lie import so3_exp
@@ -392,6 +400,7 @@ def _apply_recording_faults(opts: SimulationOptions, timestamps: np.ndarray, mea
         idx = np.clip(np.arange(u.shape[0]) + opts.velocity_shift, 0, u.shape[0] - 1)
         u = u[idx]
     u[:, 3:] += np.asarray(opts.gyro_bias_radps)
+    u[:, :3] *= opts.velocity_scale
     if any(opts.imu_frame_rotation_deg):
         R = so3_exp(np.radians(opts.imu_frame_rotation_deg))
         u[:, :3] = u[:, :3] @ R  # rows: (Rᵀ v)ᵀ = vᵀ R
