@@ -221,7 +221,7 @@ class RepeatDetector:
             return rep
         if self._t == t - 1 and ids.size:
             pos, hit = sorted_positions(ids, self._ids)
-            rep = hit & np.all(self._z[pos] == z, axis=1) if self._ids.size else hit
+            rep = hit & (self._z[pos] == z).all(axis=1) if self._ids.size else hit
         self._t, self._ids, self._z = t, ids, z
         self.stats.observations_repeated += int(rep.sum())
         return rep

@@ -48,17 +48,17 @@ def stereo_matrix(K, baseline_m: float) -> np.ndarray:
 def _require_finite(out: np.ndarray, what: str) -> np.ndarray:
     """Return ``out``, or raise GeometryError if any entry overflowed to inf/NaN (a point or
     a disparity so close to zero that the result is not representable)."""
-    if not np.all(np.isfinite(out)):
+    if not np.isfinite(out).all():
         raise GeometryError(f"{what}: result overflows (point too close to the camera plane z = 0)")
     return out
 
 
 def _in_front(q: np.ndarray, what: str) -> np.ndarray:
     """Depths q_z of homogeneous points, after checking they are finite and positive."""
-    if not np.all(np.isfinite(q)):
+    if not np.isfinite(q).all():
         raise GeometryError(f"{what}: point coordinates must be finite")
     z = q[..., 2]
-    if np.any(~(z > 0)):
+    if (~(z > 0)).any():
         raise GeometryError(f"{what}: point at or behind the camera (z <= 0)")
     return z
 
@@ -82,14 +82,13 @@ def dpi_dq(q) -> np.ndarray:
     z = _in_front(q, "dpi_dq")
     out = np.zeros(q.shape[:-1] + (4, 4))
     with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported below
-        inv_z = 1.0 / z
-        out[..., 0, 0] = inv_z
-        out[..., 1, 1] = inv_z
-        out[..., 3, 3] = inv_z
-        out[..., 0, 2] = -q[..., 0] * inv_z * inv_z
-        out[..., 1, 2] = -q[..., 1] * inv_z * inv_z
-        out[..., 3, 2] = -q[..., 3] * inv_z * inv_z
+        inv_z = (1.0 / z)[..., None]
+        out[..., _XYW, _XYW] = inv_z  # (0, 0), (1, 1), (3, 3)
+        out[..., _XYW, 2] = -q[..., _XYW] * inv_z * inv_z  # (0, 2), (1, 2), (3, 2): −q_i / q_z²
     return _require_finite(out, "dpi_dq")
+
+
+_XYW = np.array([0, 1, 3])  # the rows of dπ/dq with entries
 
 
 @dataclass(frozen=True)

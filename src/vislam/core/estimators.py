@@ -25,7 +25,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from vislam.core.corrections import apply_corrections
-from vislam.core.filters import FRAME_STAT_FIELDS, LocalizationFilter, MappingFilter, SlamFilter
+from vislam.core.filters import FRAME_STAT_FIELDS, LocalizationFilter, MappingFilter, SlamFilter, single_thread_blas
 from vislam.core.lie import se3_inverse
 from vislam.core.options import MODES, FilterOptions
 from vislam.core.results import RunResult
@@ -56,8 +56,10 @@ def run(sequence: Sequence, mode: str, options: FilterOptions | None = None, pro
     # a no-op without any, or when the caller already applied them
     sequence = apply_corrections(sequence, options)
     # The filter's matrices are small (a few hundred rows): multi-threaded BLAS only adds
-    # synchronization cost there (measured 4x slower on 2 cores), so use one thread.
-    with threadpool_limits(limits=1, user_api="blas"):
+    # synchronization cost there (measured 4x slower on 2 cores), so use one thread (a
+    # controller made now sees every BLAS loaded so far; inside single_thread_blas the
+    # filters' own per-frame contexts cost nothing).
+    with threadpool_limits(limits=1, user_api="blas"), single_thread_blas():
         if mode == "localization":
             return run_localization(sequence, options, progress, on_frame=on_frame)
         if mode == "mapping":

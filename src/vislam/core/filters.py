@@ -36,6 +36,7 @@ returns a partial result.
 from __future__ import annotations
 
 import logging
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -184,20 +185,36 @@ def _twist(linear_velocity, angular_velocity) -> np.ndarray:
 
 
 _BLAS_CONTROLLER = None
+_BLAS_DEPTH = 0  # how many single_thread_blas contexts are open (the outermost one limits)
 
 
+@contextmanager
 def single_thread_blas():
     """A context that runs BLAS on one thread (``threadpoolctl``). The filter's matrices
     are small (a few hundred rows): more threads only add synchronization (measured 4x
     slower on 2 cores, and 30x on a busy machine), so each update runs single-threaded
     also when a user steps the filter by hand. The controller is made once (entering
-    the context then costs ~30 µs instead of ~0.6 ms)."""
-    global _BLAS_CONTROLLER
+    the context then costs ~30 µs instead of ~0.6 ms), and a context opened inside
+    another one (every frame of a batch run, see :func:`vislam.core.estimators.run`)
+    costs nothing: only the outermost one sets and restores the limit."""
+    global _BLAS_CONTROLLER, _BLAS_DEPTH
+    if _BLAS_DEPTH:
+        _BLAS_DEPTH += 1
+        try:
+            yield
+        finally:
+            _BLAS_DEPTH -= 1
+        return
     if _BLAS_CONTROLLER is None:
         from threadpoolctl import ThreadpoolController
 
         _BLAS_CONTROLLER = ThreadpoolController()
-    return _BLAS_CONTROLLER.limit(limits=1, user_api="blas")
+    with _BLAS_CONTROLLER.limit(limits=1, user_api="blas"):
+        _BLAS_DEPTH += 1
+        try:
+            yield
+        finally:
+            _BLAS_DEPTH -= 1
 
 
 def _check_dt(dt_s) -> float:
@@ -736,14 +753,14 @@ class SlamFilter(_FrozenLog, _History):
                 slots = self.state.slots_of(ids)
                 live = slots >= 0
                 correction = np.zeros(6)
-                if np.any(live):
+                if live.any():
                     correction, ok, nis = self._update_live(slots[live], ids[live], rows[live], z[live], N_pose)
                     nis_sum, nis_count = float(nis[ok].sum()), int(ok.sum())
                     self.stats.nis_sum += nis_sum
                     self.stats.nis_count += nis_count
                     self._reject(t, ids[live], rows[live], ok)
                 self._marginalize_ended(ids_seen)
-                if np.any(~live):
+                if (~live).any():
                     self._initialize_new(t, ids[~live], z[~live], N_pose)
                 if self._oc:
                     self._last_correction = correction
@@ -764,7 +781,7 @@ class SlamFilter(_FrozenLog, _History):
         the track and starts a new one) and observations of rejected landmarks.
         Returns (ids, pixels, track rows)."""
         rep = self._repeated(t, ids_seen, z)
-        if self._split and np.any(rep):
+        if self._split and rep.any():
             slots_rep = self.state.slots_of(ids_seen[rep])
             self._freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one
             rep = np.zeros_like(rep)
@@ -790,18 +807,18 @@ class SlamFilter(_FrozenLog, _History):
         ok = in_front & (nis <= self._gate)
         young = tracks["nobs"][rows] <= opts.probation_frames  # init counts as 1
         joint = ok & ~young
-        if drift and np.any(ok):
+        if drift and ok.any():
             Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
-        if self._iterations > 1 and np.any(joint):
+        if self._iterations > 1 and joint.any():
             correction = slam_update_iterated(state, self.model, slots[joint], z[joint], V, N_pose,
                                               self._iterations, self._update, opts.update_iteration_tolerance,
                                               self.update_counts, (r[joint], Hp[joint], Hl[joint]))
         else:
             correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
-        if drift and np.any(ok):
+        if drift and ok.any():
             ok = self._drift_test(rows, ok, r, Ht, Lt, correction)
         probe = ok & young
-        if np.any(probe):
+        if probe.any():
             # slots are unchanged by the joint update; re-linearize at the new pose
             r2, Hp2, Hl2, _, _, _ = slam_predict_nis(state, self.model, slots[probe], z[probe], V, N_pose)
             schmidt_update(state, slots[probe], r2, Hp2, Hl2, V)  # K_lm only: the pose is "considered"
@@ -819,7 +836,7 @@ class SlamFilter(_FrozenLog, _History):
         drift_n[rows] += ok
         stat = np.einsum("ki,ki->k", drift_sum[rows], drift_sum[rows]) / np.maximum(drift_n[rows], 1)
         moving = ok & (drift_n[rows] >= 2) & (stat > self._drift_gate)
-        if np.any(moving):
+        if moving.any():
             self.stats.landmarks_moving += int(moving.sum())
             ok = ok & ~moving
             tracks["consecutive"][rows[moving]] = max(self.options.max_consecutive_gated, 1) - 1
@@ -829,7 +846,8 @@ class SlamFilter(_FrozenLog, _History):
         """Step 4: a landmark whose observations failed the gate ``max_consecutive_gated``
         frames in a row leaves the state and enters the map flagged as rejected."""
         bad = self.tracks.updated(ids, ok, t, self.stats, self.options.max_consecutive_gated, rows=rows)
-        self._freeze(self.state.slots_of(bad), LANDMARK_REJECTED)
+        if bad.size:
+            self._freeze(self.state.slots_of(bad), LANDMARK_REJECTED)
 
     def _marginalize_ended(self, ids_seen: np.ndarray) -> None:
         """Step 5: landmarks not observed in this frame leave the state — dropping their
@@ -848,7 +866,7 @@ class SlamFilter(_FrozenLog, _History):
         propagated from the pixel noise and the pose (and its correlation with the pose)."""
         good = initialization_guard(self.calibration.camera, z, self.options)
         self.stats.observations_not_initialized += int((~good).sum())
-        if np.any(good):
+        if good.any():
             g_ids, g_z = self._pending.admit(ids[good], z[good], t, self.state.imu_T_world, self._tau2_sum, self.stats)
             if g_ids.size:
                 slam_initialize_landmarks(self.state, self.model, g_ids, g_z, self._V, N_pose, self._velocity_var)
@@ -860,7 +878,7 @@ class SlamFilter(_FrozenLog, _History):
         """Step 7: the state and Σ must stay finite and Σ's diagonal non-negative."""
         if not self.state.is_finite():
             raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
-        if np.any(np.diagonal(self.state.cov) < -1e-9):
+        if (np.diagonal(self.state.cov) < -1e-9).any():
             raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
 
     def _require_healthy(self) -> None:
@@ -874,8 +892,8 @@ class SlamFilter(_FrozenLog, _History):
             return
         state = self.state
         ids = state.landmark_ids[slots]
-        p = state.p_lm_in_world[slots]
-        self._builder.add(ids, p, state.landmark_cov(slots), *self.tracks.entry(ids), status, state.v_lm_in_world[slots])
+        p, cov = state.landmark_marginals(slots)
+        self._builder.add(ids, p, cov, *self.tracks.entry(ids), status, state.v_lm_in_world[slots])
         self._log_frozen(ids, p, status == LANDMARK_REJECTED)
         state.remove_slots(slots)
         if status != LANDMARK_REJECTED:  # a rejected track stays (flagged) while in view

@@ -141,10 +141,30 @@ def so3_log(R) -> np.ndarray:
 def so3_left_jacobian(phi) -> np.ndarray:
     """Left Jacobian of SO(3): ``J = I + B phi^ + C (phi^)^2`` (..., 3, 3)."""
     phi = _as_float(phi)
+    if phi.shape == (3,):
+        return _so3_left_jacobian_single(phi)
     theta = np.linalg.norm(phi, axis=-1)
     _, B, C = _angle_coefficients(theta)
     K = so3_hat(phi)
     return np.eye(3) + B[..., None, None] * K + C[..., None, None] * (K @ K)
+
+
+def _so3_left_jacobian_single(phi: np.ndarray) -> np.ndarray:
+    """:func:`so3_left_jacobian` of one vector with scalar coefficients (the prediction
+    calls it per frame): the formulas and branches of :func:`_angle_coefficients`, in the
+    same operation order, hence the same result."""
+    x, y, z = phi.tolist()
+    theta = math.sqrt(x * x + y * y + z * z)
+    t2 = theta * theta
+    if theta < SMALL_ANGLE:
+        B = 0.5 - t2 / 24.0 + t2 * t2 / 720.0 - t2**3 / 40320.0
+        C = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0 - t2**3 / 362880.0
+    else:
+        sinc_half = math.sin(0.5 * theta) / (0.5 * theta)
+        B = 0.5 * sinc_half * sinc_half
+        C = (theta - math.sin(theta)) / (theta * theta * theta)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + B * K + C * (K @ K)
 
 
 def so3_left_jacobian_inverse(phi) -> np.ndarray:
@@ -245,15 +265,60 @@ def _se3_exp_single(xi: np.ndarray) -> np.ndarray:
 def se3_log(T) -> np.ndarray:
     """(..., 4, 4) pose -> (..., 6) twist (v, ω) with rotation angle in [0, π]."""
     T = _as_float(T)
+    if T.shape == (4, 4):
+        out = _se3_log_single(T)
+        if out is not None:
+            return out
     phi = so3_log(T[..., :3, :3])
     Jinv = so3_left_jacobian_inverse(phi)
     v = np.einsum("...ij,...j->...i", Jinv, T[..., :3, 3])
     return np.concatenate([v, phi], axis=-1)
 
 
+def _se3_log_single(T: np.ndarray) -> np.ndarray | None:
+    """:func:`se3_log` of one pose with scalar arithmetic (the iterated update calls it
+    twice per frame; the batched path costs ~10x more for a single element): the same
+    formulas, branches and operation order as :func:`so3_log` and
+    :func:`so3_left_jacobian_inverse`, hence the same result. None for angles of 3 rad
+    and more (the batched path's scipy branch)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = T[:3, :3].tolist()
+    # so3_log: w = (R − Rᵀ)^∨ / 2 = sin θ · axis,  cos θ = (tr R − 1)/2
+    w0, w1, w2 = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
+    s = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    c = 0.5 * (r00 + r11 + r22 - 1.0)
+    theta = math.atan2(s, c)
+    if not theta < 3.0:
+        return None
+    t2 = theta * theta
+    factor = 1.0 + t2 / 6.0 + 7.0 * t2 * t2 / 360.0 if theta < SMALL_ANGLE else theta / s
+    x, y, z = factor * w0, factor * w1, factor * w2  # φ
+    # so3_left_jacobian_inverse(φ) = I − φ^/2 + D (φ^)²
+    theta = math.sqrt(x * x + y * y + z * z)
+    t2 = theta * theta
+    if theta < SMALL_ANGLE:
+        D = 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0
+    else:
+        half = 0.5 * theta
+        D = (1.0 - half / math.tan(half)) / (theta * theta)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    Jinv = np.eye(3) - 0.5 * K + D * (K @ K)
+    out = np.empty(6)
+    out[:3] = np.einsum("...ij,...j->...i", Jinv, T[:3, 3])
+    out[3:] = (x, y, z)
+    return out
+
+
 def se3_inverse(T) -> np.ndarray:
     """Exact inverse of (..., 4, 4) rigid transforms: ``[[Rᵀ, -Rᵀ p], [0, 1]]``."""
     T = _as_float(T)
+    if T.shape == (4, 4):  # one pose (several per frame in the filter): scalar arithmetic,
+        # the same products and sums as the einsum below (3-term dot products in order)
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = T[:3, :3].tolist()
+        x, y, z = T[:3, 3].tolist()
+        return np.array([[r00, r10, r20, -(r00 * x + r10 * y + r20 * z)],
+                         [r01, r11, r21, -(r01 * x + r11 * y + r21 * z)],
+                         [r02, r12, r22, -(r02 * x + r12 * y + r22 * z)],
+                         [0.0, 0.0, 0.0, 1.0]])
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
     return make_pose(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
 
@@ -265,7 +330,11 @@ def se3_adjoint(T) -> np.ndarray:
     out = np.zeros(T.shape[:-2] + (6, 6))
     out[..., :3, :3] = R
     out[..., 3:, 3:] = R
-    out[..., :3, 3:] = so3_hat(T[..., :3, 3]) @ R
+    if T.shape == (4, 4):  # one pose (per frame in the filters): p^ without so3_hat's batching
+        x, y, z = T[:3, 3].tolist()
+        out[:3, 3:] = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]) @ R
+    else:
+        out[..., :3, 3:] = so3_hat(T[..., :3, 3]) @ R
     return out
 
 
@@ -294,11 +363,16 @@ def se3_odot(p) -> np.ndarray:
         s = p[..., :3]
         lam = p[..., 3]
     out = np.zeros(p.shape[:-1] + (4, 6))
-    out[..., 0, 0] = lam
-    out[..., 1, 1] = lam
-    out[..., 2, 2] = lam
-    out[..., :3, 3:] = -so3_hat(s)
+    out[..., _I3, _I3] = lam[..., None]  # λ I
+    # −s^ = [[−0, z, −y], [−z, −0, x], [y, −x, −0]] (the entries of -so3_hat(s), signed zeros included)
+    out[..., _I3, _I3 + 3] = -0.0
+    out[..., _ODOT_ROWS, _ODOT_COLS] = s[..., _ODOT_SRC] * _ODOT_SIGN
     return out
+
+
+_I3 = np.arange(3)
+_ODOT_ROWS, _ODOT_COLS = np.array([0, 0, 1, 1, 2, 2]), np.array([4, 5, 3, 5, 3, 4])
+_ODOT_SRC, _ODOT_SIGN = np.array([2, 1, 2, 0, 1, 0]), np.array([1.0, -1.0, -1.0, 1.0, 1.0, -1.0])
 
 
 def is_rigid_transform(T, tol: float = 1e-6) -> bool:

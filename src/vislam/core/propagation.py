@@ -46,7 +46,11 @@ def level_to_body(imu_T_world: np.ndarray, linear_velocity: np.ndarray) -> np.nd
     heading (the world-frame direction of its x axis in the horizontal plane). Batched
     over leading axes ((..., 4, 4) poses, (..., 3) velocities); :func:`body_to_level`
     is its inverse."""
-    R_bw = imu_T_world[..., :3, :3]
+    return _level_to_body_rotations(imu_T_world[..., :3, :3], linear_velocity)
+
+
+def _level_to_body_rotations(R_bw: np.ndarray, linear_velocity: np.ndarray) -> np.ndarray:
+    """:func:`level_to_body` with the rotations R_bw (..., 3, 3) of the poses."""
     v_world = _rotate_z(_heading(R_bw), np.asarray(linear_velocity, dtype=np.float64))  # Rz(ψ) v
     return np.matmul(R_bw, v_world[..., None])[..., 0]
 
@@ -80,23 +84,32 @@ def body_twist_jacobian(u: np.ndarray, imu_T_world: np.ndarray, velocity_frame: 
     central differences (the map is smooth and 3x3)."""
     if velocity_frame != "level":
         return None
-    v = np.asarray(u[:3], dtype=np.float64)
-    h = 1e-6
-    poses = np.broadcast_to(imu_T_world, (6, 4, 4)).copy()  # ± h about each body axis, one batch
-    poses[:, :3, :3] = _PERTURB_ROTATIONS @ imu_T_world[:3, :3]
-    vb = level_to_body(poses, np.broadcast_to(v, (6, 3)))
-    D = np.zeros((6, 6))
-    D[:3, 3:] = (vb[:3] - vb[3:]).T / (2 * h)
-    return D
+    return prediction_twist(u, imu_T_world, velocity_frame, True)[1]
 
 
 def prediction_twist(u: np.ndarray, imu_T_world: np.ndarray, velocity_frame: str, jacobian: bool):
     """What a prediction from ``imu_T_world`` needs of the recorded twist ``u``: (the
     body twist of :func:`body_twist`, its attitude derivative of
     :func:`body_twist_jacobian` when ``jacobian`` — FilterOptions.level_velocity_jacobian
-    — else None)."""
-    du = body_twist_jacobian(u, imu_T_world, velocity_frame) if jacobian else None
-    return body_twist(u, imu_T_world, velocity_frame), du
+    — else None).
+
+    With both, the body velocity and the central differences of the Jacobian are one
+    batch of seven rotations (the pose's and exp(±h e_j^) R_bw, h = 1e-6) through
+    :func:`level_to_body` (per element the same arithmetic as one call per rotation)."""
+    if velocity_frame != "level" or not jacobian:
+        du = body_twist_jacobian(u, imu_T_world, velocity_frame) if jacobian else None
+        return body_twist(u, imu_T_world, velocity_frame), du
+    v = np.asarray(u[:3], dtype=np.float64)
+    h = 1e-6
+    R_bw = np.empty((7, 3, 3))
+    R_bw[0] = imu_T_world[:3, :3]
+    R_bw[1:] = _PERTURB_ROTATIONS @ imu_T_world[:3, :3]
+    vb = _level_to_body_rotations(R_bw, np.broadcast_to(v, (7, 3)))
+    out = np.array(u, dtype=np.float64)
+    out[:3] = vb[0]
+    D = np.zeros((6, 6))
+    D[:3, 3:] = (vb[1:4] - vb[4:]).T / (2 * h)
+    return out, D
 
 
 #: exp(±h e_j^), h = 1e-6 (rows: +e1, +e2, +e3, −e1, −e2, −e3), for body_twist_jacobian.

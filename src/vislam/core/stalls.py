@@ -68,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-from vislam.core.bookkeeping import IdTable, in_sorted
+from vislam.core.bookkeeping import sorted_positions
 from vislam.core.lie import se3_inverse
 from vislam.core.propagation import dead_reckoning
 from vislam.core.sequence import Sequence, StereoObservations
@@ -555,12 +555,15 @@ class StallRemapBuffer:
     def __init__(self, max_delay_frames: int):
         from collections import deque
 
-
         if max_delay_frames < 0:
             raise ValueError("max_delay_frames must be >= 0")
         self.max_delay_frames = int(max_delay_frames)
-        self._tracks = IdTable({"lag": ((), np.int64, 0), "last": ((), np.int64, -2),
-                                "px": ((4,), np.float64, 0.0)})
+        # the tracks in view: every track alive at frame k was observed at k − 1 (a gap
+        # ends it), so they are exactly the last frame's observations — its ids (strictly
+        # increasing), pixels and the lag of each track
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._px = np.zeros((0, 4))
+        self._lag = np.zeros(0, dtype=np.int64)
         self._pending = deque()  # [frame, id parts, pixel parts], oldest first
         self._next = 0  # index of the next frame pushed
         self.repeats = 0
@@ -581,35 +584,35 @@ class StallRemapBuffer:
         self._next += 1
         ids = np.asarray(frame.landmark_ids, dtype=np.int64)
         z = np.asarray(frame.pixels, dtype=np.float64)
-        tr = self._tracks
-        # tracks not observed now have ended (a gap starts a new track)
-        if len(tr):
-            gone = ~in_sorted(tr.ids, ids)
-            if gone.any():
-                tr.remove(tr.ids[gone])
-        rows = tr.rows(ids)  # every live track was seen in frame k − 1 (the others are gone)
-        new = rows < 0
-        if new.any():
-            tr.add(ids[new])
-            rows = tr.rows(ids)
-        cont = ~new
-        rep = cont & np.all(tr["px"][rows] == z, axis=1)
-        tr["lag"][rows[rep]] += 1
-        tr["last"][rows] = k
-        tr["px"][rows] = z
+        # continuing tracks (observed in frame k − 1 too) keep their lag; the others start
+        # at lag 0 (tracks not observed now have ended: a gap starts a new track)
+        pos, cont = sorted_positions(ids, self._ids)
+        lag = np.where(cont, self._lag[pos], 0) if self._ids.size else np.zeros(ids.size, dtype=np.int64)
+        rep = cont & (self._px[pos] == z).all(axis=1) if self._ids.size else cont
+        lag += rep
+        self._ids, self._px, self._lag = ids.copy(), z.copy(), lag  # (the caller may reuse its arrays)
         self.repeats += int(rep.sum())
         keep = ~rep
-        lag = tr["lag"][rows[keep]]
+        lag = lag[keep]
         ok = lag <= self.max_delay_frames
         self.dropped += int((~ok).sum())
-        k_ids, k_z, target = ids[keep][ok], z[keep][ok], k - lag[ok]
         self._pending.append([k, frame, [], []])
         base = k - (len(self._pending) - 1)  # number of the oldest pending frame
-        for j in np.unique(target):
-            sel = target == j
-            entry = self._pending[int(j) - base]
-            entry[2].append(k_ids[sel])
-            entry[3].append(k_z[sel])
+        sel = np.flatnonzero(keep)[ok]
+        if sel.size == 0:
+            groups = ()
+        elif lag.any():
+            # group by target frame k − lag (a stable sort keeps the ids increasing in each group)
+            sel = sel[np.argsort(lag[ok], kind="stable")]
+            target = k - self._lag[sel]
+            cuts = (np.flatnonzero(np.diff(target)) + 1).tolist()
+            groups = zip([0, *cuts], [*cuts, sel.size], target[[0, *cuts]].tolist())
+        else:  # no lagged track: every observation belongs to frame k
+            groups = ((0, sel.size, k),)
+        for a, b, j in groups:
+            entry = self._pending[j - base]
+            entry[2].append(ids[sel[a:b]])
+            entry[3].append(z[sel[a:b]])
         ready = []
         while self._pending and self._pending[0][0] <= k - self.max_delay_frames:
             ready.append(self._release())
@@ -621,12 +624,14 @@ class StallRemapBuffer:
 
     def _release(self):
         _, frame, id_parts, px_parts = self._pending.popleft()
-        if id_parts:
+        if len(id_parts) == 1:  # one push contributed: its ids are increasing already
+            ids, pixels = id_parts[0], px_parts[0]
+        elif id_parts:
             ids = np.concatenate(id_parts)
             pixels = np.concatenate(px_parts)
             order = np.argsort(ids, kind="stable")
             ids, pixels = ids[order], pixels[order]
-            if ids.size > 1 and np.any(np.diff(ids) <= 0):  # cannot happen (see remap_stalled_tracks)
+            if ids.size > 1 and (np.diff(ids) <= 0).any():  # cannot happen (see remap_stalled_tracks)
                 raise ValueError(f"stall remap: two observations of one landmark in frame {frame.index}")
         else:
             ids, pixels = np.zeros(0, dtype=np.int64), np.zeros((0, 4))

@@ -20,6 +20,7 @@ import logging
 
 import numpy as np
 from scipy.linalg import solve_triangular
+from scipy.linalg.lapack import dtrtrs
 
 from vislam.core.camera import StereoCamera, dpi_dq
 from vislam.core.lie import se3_exp, se3_inverse, se3_log, se3_odot
@@ -76,8 +77,8 @@ class StereoModel:
                 also ρ > 0).
         """
         k = p_lm_in_world.shape[0]
-        m_h = np.empty((k, 4))
         if world_T_anchor is None:
+            m_h = np.empty((k, 4))
             m_h[:, :3] = p_lm_in_world
             m_h[:, 3] = 1.0
         else:
@@ -91,8 +92,10 @@ class StereoModel:
         in_front = q[:, 2] > 1e-6
         if world_T_anchor is not None:
             in_front &= m_h[:, 3] > 0
-        q_safe = q.copy()
-        q_safe[~in_front, 2] = 1.0
+        q_safe = q
+        if not in_front.all():
+            q_safe = q.copy()
+            q_safe[~in_front, 2] = 1.0
         J = self.M @ dpi_dq(q_safe)  # M dπ/dq(q)   (k, 4, 4)
         z_hat = (q_safe / q_safe[:, 2:3]) @ self.M.T  # M π(q)
         if world_T_anchor is None:
@@ -169,7 +172,7 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
     blocks = _gather_blocks(state, slots)
     S = innovation_covariances(Hp, Hl, blocks, V)
     nis = np.full(len(slots), np.inf)
-    if np.any(in_front):
+    if in_front.any():
         nis[in_front] = innovation_nis(r[in_front], S[in_front])
     return r, Hp, Hl, in_front, nis, blocks
 
@@ -199,7 +202,11 @@ def conditional_residual_model(blocks, Hp: np.ndarray, Hl: np.ndarray, V: np.nda
     consensus of the frame, whitened — N(0, I₄) for a static landmark.
     """
     P_pp, P_ps, P_ss = blocks
-    G = np.swapaxes(np.linalg.solve(P_pp + 1e-12 * np.eye(POSE_DIM), P_ps), 1, 2)  # Σ_sp Σ_pp⁻¹ (k, d, 6)
+    k, _, d = P_ps.shape
+    # Σ_pp⁻¹ Σ_ps of every landmark as one solve with 6 x dk right-hand sides (LAPACK solves
+    # column by column: the same numbers as k broadcast solves of one matrix, 2.5x faster)
+    X = np.linalg.solve(P_pp + 1e-12 * np.eye(POSE_DIM), np.swapaxes(P_ps, 0, 1).reshape(POSE_DIM, k * d))
+    G = X.reshape(POSE_DIM, k, d).transpose(1, 2, 0)  # Σ_sp Σ_pp⁻¹ (k, d, 6)
     Ht = Hp + Hl @ G
     C = P_ss - G @ P_ps  # Σ_ss − Σ_sp Σ_pp⁻¹ Σ_ps
     St = Hl @ C @ np.swapaxes(Hl, 1, 2) + V
@@ -224,6 +231,21 @@ def oc_project(Hp: np.ndarray, Hl: np.ndarray, N_pose: np.ndarray, N_lm: np.ndar
     NtN = N_pose.T @ N_pose + N_lmT @ N_lm  # Nᵀ N  (k, 6, 6), symmetric
     Z = np.swapaxes(np.linalg.solve(NtN, np.swapaxes(HN, 1, 2)), 1, 2)  # H N (Nᵀ N)⁻¹  (k, 4, 6)
     return Hp - Z @ N_pose.T, Hl - Z @ N_lmT  # H* = H − H N (Nᵀ N)⁻¹ Nᵀ, split by blocks
+
+
+def _solve_lower(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """L⁻¹ b for a lower-triangular float64 L: ``solve_triangular(L, b, lower=True,
+    check_finite=False)`` without its validation and dispatch (~80 µs a call, several
+    calls per frame) — the same LAPACK call (trtrs), hence the same result."""
+    if L.flags.f_contiguous:
+        x, info = dtrtrs(L, b, lower=1, trans=0)
+    else:  # trtrs expects Fortran order: solve the transposed system with Lᵀ's view
+        x, info = dtrtrs(L.T, b, lower=0, trans=1)
+    if info > 0:
+        raise np.linalg.LinAlgError(f"singular matrix: resolution failed at diagonal {info - 1}")
+    if info < 0:
+        raise ValueError(f"illegal value in {-info}-th argument of internal trtrs")
+    return x
 
 
 def _apply_correction(state: SlamState, dx: np.ndarray) -> None:
@@ -269,12 +291,11 @@ def compress_stereo(r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray
     var = np.diag(V)
     if V[1, 1] != V[3, 3] or np.count_nonzero(V - np.diag(var)):
         return r, Hp, Hl, var  # not applicable: keep the four rows
-    idx = [0, 1, 2]
-    r3 = r[:, idx].copy()
+    r3 = r[:, :3].copy()
     r3[:, 1] = 0.5 * (r[:, 1] + r[:, 3])
-    Hp3 = Hp[:, idx].copy()
+    Hp3 = Hp[:, :3].copy()
     Hp3[:, 1] = 0.5 * (Hp[:, 1] + Hp[:, 3])
-    Hl3 = Hl[:, idx].copy()
+    Hl3 = Hl[:, :3].copy()
     Hl3[:, 1] = 0.5 * (Hl[:, 1] + Hl[:, 3])
     return r3, Hp3, Hl3, np.array([var[0], 0.5 * var[1], var[2]])
 
@@ -303,8 +324,8 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
     P = state.cov
     rows = state.landmark_rows(slots)  # (k, 3)
     PHt, L = _innovation_terms(P, rows, Hp, Hl, var)
-    B = solve_triangular(L, PHt.T, lower=True, check_finite=False)  # B = L⁻¹ H Σ
-    y = solve_triangular(L, r.reshape(-1), lower=True, check_finite=False)  # y = L⁻¹ r
+    B = _solve_lower(L, PHt.T)  # B = L⁻¹ H Σ
+    y = _solve_lower(L, r.reshape(-1))  # y = L⁻¹ r
     dx = B.T @ y  # δ = K r = Σ Hᵀ S⁻¹ r
     if factors is not None:
         factors.update(L=L, B=B, compressed=r.shape[1] == 3)
@@ -318,7 +339,7 @@ def gain_times(factors: dict, dr: np.ndarray) -> np.ndarray:
     (K = Σ Hᵀ S⁻¹ = Bᵀ L⁻¹, the rows compressed as that update did)."""
     if factors["compressed"]:  # the rows of compress_stereo: uL, (vL + vR)/2, uR
         dr = np.stack([dr[:, 0], 0.5 * (dr[:, 1] + dr[:, 3]), dr[:, 2]], axis=1)
-    y = solve_triangular(factors["L"], dr.reshape(-1), lower=True, check_finite=False)
+    y = _solve_lower(factors["L"], dr.reshape(-1))
     return factors["B"].T @ y
 
 
@@ -377,11 +398,12 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
             (r, Hp, Hl), in_front = first, None
         else:
             r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
-        if i and not np.all(in_front):
+        if i and not in_front.all():
             break  # keep the last iterate: the next linearization point has a point behind the camera
         if i:
-            d = np.concatenate([lm0[slots] - state.lm_mean[slots], v0[slots] - state.v_lm_in_world[slots]],
-                               axis=1)[:, :Hl.shape[2]]
+            d = lm0[slots] - state.lm_mean[slots]  # m₀ − m_i (and v₀ − v_i with velocities)
+            if Hl.shape[2] == 6:
+                d = np.concatenate([d, v0[slots] - state.v_lm_in_world[slots]], axis=1)
             r = r - Hp @ se3_log(mu0 @ se3_inverse(state.imu_T_world)) - np.einsum("kij,kj->ki", Hl, d)
             if factors and _step_size(state, slots, gain_times(factors, r - r_prev)) < tolerance:
                 break  # converged: the re-linearization would move the estimate by a negligible step
