@@ -413,3 +413,23 @@ def test_landmark_medians_match_numpy_per_group():
     ids, med, inv = _landmark_medians(landmark, d)
     np.testing.assert_array_equal(ids[inv], landmark)
     np.testing.assert_allclose(med, [np.median(d[landmark == i]) for i in ids], rtol=0, atol=0)
+
+
+def test_timestamps_in_milliseconds_are_named_and_the_rest_of_the_check_still_works():
+    drive = simulate_drive(SIM)
+    seq = drive.sequence
+    stamped_ms = seq.replace(timestamps_s=seq.timestamps_s * 1000.0)
+    result = check_sequence(stamped_ms, FAST)
+    assert _severity(result, "timestamps") == "WARN"
+    assert "milliseconds" in result.finding("timestamps").message
+    assert result.suggested == {"timestamp_scale": 0.001}
+    assert result.estimates["frame_interval_s"] == pytest.approx(float(np.median(np.diff(seq.timestamps_s))), rel=1e-5)
+    for code in CONVENTION_CODES:  # checked in seconds
+        assert _severity(result, code) == "OK", result.finding(code).message
+    fixed = apply_corrections(stamped_ms, result.suggested_options())
+    np.testing.assert_allclose(fixed.timestamps_s, seq.timestamps_s, rtol=1e-12)
+    assert _severity(check_sequence(seq, FAST), "timestamps") == "OK"
+    # 4 s between frames: no unit makes it a camera's interval
+    slow = check_sequence(seq.replace(timestamps_s=seq.timestamps_s * 40.0), FAST)
+    assert _severity(slow, "timestamps") == "ERROR"
+    assert "timestamp_scale" not in slow.suggested

@@ -80,8 +80,8 @@ logger = logging.getLogger(__name__)
 
 SEVERITIES = ("OK", "WARN", "ERROR")
 #: Stable codes of the findings, in the order they are reported.
-FINDING_CODES = ("imu-camera-rotation", "velocity-association", "velocity-scale", "time-offset", "imu-bias", "noise",
-                 "pixel-noise", "reprojection", "repeated-observations", "disparity")
+FINDING_CODES = ("timestamps", "imu-camera-rotation", "velocity-association", "velocity-scale", "time-offset",
+                 "imu-bias", "noise", "pixel-noise", "reprojection", "repeated-observations", "disparity")
 
 
 @dataclass(frozen=True)
@@ -103,6 +103,8 @@ class CheckOptions:
     #: 19 of 44 landmarks, 70 % of the predictions (median 42 px, 2.0 px without them); on
     #: the other shared files 0-4 % of the landmarks. None: keep every landmark.
     moving_landmark_px: float | None = 12.0
+    #: A camera's frame interval (s, median): outside it the timestamps' unit is suspect.
+    frame_interval_s: tuple[float, float] = (0.005, 1.0)
     #: Predictions (a random subset) scored for each start of the fit (rotation x factor).
     start_pairs: int = 5000
     #: Factors on the linear velocities searched (a unit mistake: km/h stored as m/s is
@@ -515,6 +517,29 @@ def _moving_landmarks(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi: np.ndar
     return out
 
 
+#: Units timestamps may have been recorded in by mistake: (seconds per unit, name).
+_TIME_UNITS = ((1e-3, "milliseconds"), (1e-6, "microseconds"), (1e-9, "nanoseconds"))
+
+
+def _timestamp_unit(dt: float, opts: CheckOptions) -> tuple[float, Finding]:
+    """(factor to seconds, the finding) for the median frame interval ``dt`` of the
+    recording's timestamps: a camera's interval is within ``opts.frame_interval_s``;
+    outside it, the first of ms, µs, ns that brings it inside is suggested."""
+    lo, hi = opts.frame_interval_s
+    if dt <= 0 or lo <= dt <= hi:
+        return 1.0, Finding("timestamps", "OK", f"frames are {dt:.4g} s apart ({1 / dt:.3g} Hz); nothing to do"
+                            if dt > 0 else "fewer than two frames: nothing to check")
+    for factor, name in _TIME_UNITS:
+        if lo <= dt * factor <= hi:
+            return factor, Finding("timestamps", "WARN",
+                                   f"frames are {dt:.4g} apart in the recording's time unit, {dt * factor:.4g} s "
+                                   f"({1 / (dt * factor):.3g} Hz) if it is {name}: run with the suggested "
+                                   f"timestamp_scale {factor:g} (the rest of this check assumed it)")
+    return 1.0, Finding("timestamps", "ERROR",
+                        f"frames are {dt:.4g} s apart, outside a camera's {lo:g}-{hi:g} s in seconds and in ms, µs or "
+                        f"ns: the timestamps are not a frame clock; the filter's prediction steps will be wrong")
+
+
 #: Units a speed may have been recorded in by mistake: (recorded value per m/s, name).
 _SPEED_UNITS = ((3.6, "km/h"), (1 / 0.44704, "mph"), (1 / 0.514444, "knots"), (100.0, "cm/s"), (1000.0, "mm/s"))
 
@@ -646,6 +671,17 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
     ts = sequence.timestamps_s
     u = sequence.velocities()
     dt = float(np.median(np.diff(ts))) if T > 1 else 0.0
+
+    # --- the timestamps' unit: a camera's frame interval is 5 ms to 1 s ------------------
+    factor, finding = _timestamp_unit(dt, opts)
+    findings.append(finding)
+    est["frame_interval_s"] = dt * factor
+    est["timestamp_scale"] = factor
+    if factor != 1.0:  # the analyses below see seconds
+        suggested["timestamp_scale"] = factor
+        sequence = sequence.replace(timestamps_s=sequence.timestamps_s * factor)
+        ts = sequence.timestamps_s
+        dt *= factor
 
     # --- what `info` reports ----------------------------------------------------------
     disparity = obs.pixels[:, 0] - obs.pixels[:, 2]
@@ -979,7 +1015,8 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
     # --- reprojection after the corrections found ------------------------------------------
     if pairs.n_pairs >= 30:
         corrected = apply_corrections(sequence, FilterOptions.from_dict(
-            {k: v for k, v in suggested.items() if k not in ("velocity_noise_mps", "angular_noise_radps")}))
+            {k: v for k, v in suggested.items()
+             if k not in ("velocity_noise_mps", "angular_noise_radps", "timestamp_scale")}))  # (already applied)
         r_after = pairs.residuals(pairs.relative_imu(corrected.timestamps_s, corrected.velocities(), 1),
                                   np.asarray(corrected.cam_T_imu))
         est["reprojection_after_px"] = _percentiles(_left_distance(r_after))

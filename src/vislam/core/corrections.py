@@ -8,6 +8,8 @@ estimator sees it. The data file itself is never edited.
 
 In this order:
 
+0. ``timestamp_scale = f``: every timestamp is multiplied by f (a recording stamped in
+   milliseconds needs 0.001).
 1. ``velocity_association = "current"``: the sample of frame k describes the interval
    k -> k+1. The estimators use sample k+1 for that interval (see
    :mod:`vislam.core.propagation`), so every sample moves one frame later:
@@ -78,6 +80,8 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
     applied = correction_values(options)
     if sequence.corrections == applied:
         return sequence
+    if options.timestamp_scale != 1.0:
+        sequence = sequence.replace(timestamps_s=sequence.timestamps_s * options.timestamp_scale)
     u = sequence.velocities()
     if options.velocity_association == "current":
         u = shift_to_current_association(u)

@@ -52,7 +52,7 @@ VELOCITY_ASSOCIATIONS = ("next", "current")
 VELOCITY_FRAMES = ("body", "level")
 #: Options that change the data before filtering (see vislam.core.corrections).
 DATA_CORRECTION_FIELDS = ("gyro_bias_radps", "velocity_bias_mps", "imu_camera_rotation_correction_deg", "cam_T_imu",
-                          "velocity_association", "time_offset_s", "velocity_scale")
+                          "velocity_association", "time_offset_s", "velocity_scale", "timestamp_scale")
 #: Options that are a number or three numbers (per IMU axis x, y, z).
 PER_AXIS_FIELDS = ("velocity_noise_mps", "angular_noise_radps")
 #: Options that are exactly three numbers.
@@ -243,6 +243,9 @@ class FilterOptions:
     #: recorded value times this is the speed in m/s. A recording in km/h needs 1/3.6
     #: (0.2778), one in mph 0.44704, a wheel odometry that reads 5 % fast 1/1.05.
     velocity_scale: float = 1.0
+    #: Factor that turns the recording's timestamps into seconds (0.001 for a recording
+    #: stamped in milliseconds, 1e-9 in nanoseconds).
+    timestamp_scale: float = 1.0
     #: Correction of the IMU-camera rotation: a rotation vector in the camera frame
     #: (degrees; axis times angle). The rotation block of cam_T_imu becomes
     #: ``exp(φ) @ R``; its translation (the IMU origin in the camera frame) is kept.
@@ -355,10 +358,10 @@ class FilterOptions:
                 if value not in VELOCITY_ASSOCIATIONS:
                     raise ConfigError(f"velocity_association must be one of {', '.join(VELOCITY_ASSOCIATIONS)}, "
                                       f"got {value!r}")
-            elif f.name == "velocity_scale":
+            elif f.name in ("velocity_scale", "timestamp_scale"):
                 if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
                         or value <= 0:
-                    raise ConfigError(f"velocity_scale must be a number > 0, got {value!r}")
+                    raise ConfigError(f"{f.name} must be a number > 0, got {value!r}")
             elif f.name == "time_offset_s":
                 if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                     raise ConfigError(f"time_offset_s must be a finite number (s), got {value!r}")
