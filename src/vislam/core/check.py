@@ -23,6 +23,12 @@ The analyses
   motion that the IMU velocities give (dead reckoning over the window, through
   cam_T_imu). The residuals (left-image distance, px) say how well velocities,
   association, extrinsic rotation and time base fit the images.
+* **The timestamps' unit**: a camera's median frame interval is 5 ms–1 s; outside it,
+  the first of ms, µs, ns that brings it inside is named and suggested
+  (``timestamp_scale``), and the analyses below run in seconds.
+* **The speeds' scale** (a unit mistake: km/h, mph, knots, cm/s; or an odometry scale
+  error): a factor on the linear velocities is fitted with the rotation below, started
+  from a log grid; a unit is corrected with its exact factor (``velocity_scale``).
 * **Landmarks that do not follow the world's motion** (vehicles in traffic alongside,
   mismatched tracks): those whose predictions reproject with a median above
   ``moving_landmark_px`` (and 4x the landmarks' first quartile) at the best start are
