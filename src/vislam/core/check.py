@@ -433,6 +433,21 @@ def roll_tilted(u: np.ndarray, gain: float, axes) -> np.ndarray:
     return out
 
 
+def _turned(cam_T_imu: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """cam_T_imu with its rotation turned by exp(φ) on the camera side (φ in rad; a
+    copy): the candidate calibrations of the fits."""
+    C = cam_T_imu.copy()
+    C[:3, :3] = so3_exp(phi) @ cam_T_imu[:3, :3]
+    return C
+
+
+def _scaled(u: np.ndarray, factor: float) -> np.ndarray:
+    """The (T, 6) twists with the linear velocities times ``factor`` (a copy)."""
+    out = u.copy()
+    out[:, :3] *= factor
+    return out
+
+
 def _fit_rotation_and_bias(pairs: _TrackPairs, timestamps, u, cam_T_imu, shift: int, scale: float,
                            phi0: np.ndarray, fit_bias: bool = True, fit_scale: bool = False,
                            log_scale0: float = 0.0):
@@ -452,9 +467,7 @@ def _fit_rotation_and_bias(pairs: _TrackPairs, timestamps, u, cam_T_imu, shift: 
             ub[:, 3:] -= x[3:6]
         ub[:, :3] *= math.exp(x[n_rb] if fit_scale else log_scale0)
         rel = pairs.relative_imu(timestamps, ub, shift)
-        C = cam_T_imu.copy()
-        C[:3, :3] = so3_exp(x[:3]) @ cam_T_imu[:3, :3]
-        return pairs.residuals(rel, C).ravel()
+        return pairs.residuals(rel, _turned(cam_T_imu, x[:3])).ravel()
 
     x0 = np.concatenate([phi0, np.zeros(3)])[:n_rb]
     x_scale = np.array([0.01] * 3 + [0.001] * 3)[:n_rb]
@@ -513,9 +526,7 @@ def _moving_landmarks(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi: np.ndar
                            "landmark_ids": []}
     if threshold_px is None or lms.size == 0:
         return out
-    C = cam_T_imu.copy()
-    C[:3, :3] = so3_exp(phi) @ cam_T_imu[:3, :3]
-    d = _left_distance(pairs.residuals(pairs.relative_imu(timestamps, u, 1), C))
+    d = _left_distance(pairs.residuals(pairs.relative_imu(timestamps, u, 1), _turned(cam_T_imu, phi)))
     lms, med, inv = _landmark_medians(pairs.landmark, d)
     bad = med > max(float(threshold_px), 4.0 * float(np.percentile(med, 25)))
     out.update(landmarks=int(bad.sum()), predictions_share=float(np.mean(bad[inv])),
@@ -789,27 +800,18 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
         rel_few = few.relative_imu(ts, u, 1)
         costs = []
         for phi0, k in starts:
-            C = C0.copy()
-            C[:3, :3] = so3_exp(phi0) @ C0[:3, :3]
-            if k == 1.0:
-                r0 = few.residuals(rel_few, C)
-            else:
-                uk = u.copy()
-                uk[:, :3] *= k
-                r0 = few.residuals(few.relative_imu(ts, uk, 1), C)
+            rel_k = rel_few if k == 1.0 else few.relative_imu(ts, _scaled(u, k), 1)
+            r0 = few.residuals(rel_k, _turned(C0, phi0))
             d0 = _left_distance(r0)
             costs.append((-_landmark_inliers(few.landmark, d0, inlier_px), -int(np.count_nonzero(d0 <= inlier_px)),
                           float(np.sum(_cauchy_cost(r0, scale)))))
         phi_start, k_start = starts[min(range(len(costs)), key=costs.__getitem__)]
-        if k_start != 1.0:  # the loss scale from the residuals at that factor
-            u_start = u.copy()
-            u_start[:, :3] *= k_start
-            C = C0.copy()
-            C[:3, :3] = so3_exp(phi_start) @ C0[:3, :3]
-            r_start = pairs.residuals(pairs.relative_imu(ts, u_start, 1), C)
-            scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_start, axis=1))))
-        else:
-            u_start = u
+        # the residuals the loss scale follows: the recorded data's, or at the factor found
+        u_start, r_scale = u, r_before
+        if k_start != 1.0:
+            u_start = _scaled(u, k_start)
+            r_scale = pairs.residuals(pairs.relative_imu(ts, u_start, 1), _turned(C0, phi_start))
+            scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_scale, axis=1))))
 
         # landmarks that do not follow the world's motion (traffic, mismatched tracks),
         # judged at the best start: left out of the fits
@@ -820,32 +822,27 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
             keep = ~np.isin(pairs.landmark, ids)
             keep_all = ~np.isin(all_pairs.landmark, ids)
             if np.count_nonzero(keep) >= 30:
-                if k_start == 1.0:
-                    scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_before[keep], axis=1))))
-                else:
-                    scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_start[keep], axis=1))))
+                scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_scale[keep], axis=1))))
                 pairs, all_pairs = pairs.select(keep), all_pairs.select(keep_all)
                 est["reprojection_before_static_px"] = _percentiles(_left_distance(r_before[keep]))
             else:
                 moving["kept"] = "fewer than 30 predictions would remain: every landmark kept"
-        x, cov, _, (log_k, log_k_var) = _fit_rotation_and_bias(pairs, ts, u, C0, 1, scale, phi_start, opts.fit_gyro_bias,
-                                                               fit_scale=True, log_scale0=math.log(k_start))
+        x, cov, _, (log_k, log_k_var) = _fit_rotation_and_bias(pairs, ts, u, C0, 1, scale, phi_start,
+                                                               opts.fit_gyro_bias, fit_scale=True,
+                                                               log_scale0=math.log(k_start))
         # the linear velocities' factor: everything below sees the velocities times it
         k_hat = math.exp(log_k)
         k_se = k_hat * math.sqrt(log_k_var) if math.isfinite(log_k_var) and log_k_var >= 0 else None
         k_se = math.hypot(k_se, opts.velocity_scale_floor) if k_se is not None else None
         est["velocity_scale"] = k_hat
         est["velocity_scale_se"] = k_se
-        u = u.copy()
-        u[:, :3] *= k_hat
+        u = _scaled(u, k_hat)
 
         # association: the shift with the smallest cost at that rotation and bias
         def shifted_cost(s: int, phi: np.ndarray, b: np.ndarray) -> np.ndarray:
             ub = u.copy()
             ub[:, 3:] -= b
-            C = C0.copy()
-            C[:3, :3] = so3_exp(phi) @ C0[:3, :3]
-            return _cauchy_cost(all_pairs.residuals(all_pairs.relative_imu(ts, ub, s), C), scale)
+            return _cauchy_cost(all_pairs.residuals(all_pairs.relative_imu(ts, ub, s), _turned(C0, phi)), scale)
 
         shift_costs = {s: shifted_cost(s, x[:3], x[3:]) for s in (-1, 0, 1, 2, 3)}
         totals = {s: float(np.sum(c)) for s, c in shift_costs.items()}
@@ -897,9 +894,8 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
         est["imu_camera_rotation_chi2"] = rotation_z2
         ub = u.copy()
         ub[:, 3:] -= x[3:]
-        Cfit = C0.copy()
-        Cfit[:3, :3] = so3_exp(phi) @ C0[:3, :3]
-        fit_median = float(np.median(_left_distance(pairs.residuals(pairs.relative_imu(ts, ub, shift), Cfit))))
+        fit_median = float(np.median(_left_distance(pairs.residuals(pairs.relative_imu(ts, ub, shift),
+                                                                    _turned(C0, phi)))))
         est["reprojection_best_fit_median_px"] = fit_median
         reliable = fit_median <= opts.max_fit_median_px
         est["conventions_checked"] = reliable
@@ -1104,8 +1100,7 @@ def _time_offset(pairs: _TrackPairs, ts, u, C0, x, shift: int, dt: float, scale:
     """Time offset (s) minimizing the reprojection cost, its bootstrap standard error and the grid."""
     ub = u.copy()
     ub[:, 3:] -= x[3:]
-    C = C0.copy()
-    C[:3, :3] = so3_exp(x[:3]) @ C0[:3, :3]
+    C = _turned(C0, x[:3])
     grid = np.linspace(-dt, dt, 11)
     _, inv = np.unique(pairs.landmark, return_inverse=True)
     per = []

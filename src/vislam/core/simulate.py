@@ -388,8 +388,9 @@ def _apply_recording_faults(opts: SimulationOptions, timestamps: np.ndarray, mea
 
     In this order: time offset (the sample stamped t is the signal at t + δ, linear
     interpolation, constant beyond the ends), index shift (sample k is sample k + shift),
-    gyro bias (added), velocity scale (linear velocities multiplied), the frame of the velocities (coordinates in the turned frame,
-    ``Rᵀ u``), the extrinsic error (rotation block ``exp(φ) R``).
+    gyro bias (added), velocity scale (linear velocities multiplied), the frame of the
+    velocities (coordinates in the turned frame, ``Rᵀ u``), the extrinsic error (rotation
+    block ``exp(φ) R``).
     """
     from vislam.core.lie import so3_exp
 

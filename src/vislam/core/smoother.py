@@ -641,19 +641,11 @@ class SmootherFilter(_History):
         p(t_i) = p + δp + v (t_i − t̄), over observations from poses ``world_T_imu``
         (N, 4, 4) of points ``p`` (N, 3) with whitened residuals ``r`` (N, 3), grouped
         by landmark (``starts``: first row of each)."""
-        cam = self.calibration.camera
         cam_T_world = self.model.cam_T_imu @ se3_inverse(world_T_imu)
         R = cam_T_world[:, :3, :3]
         q = np.einsum("kij,kj->ki", R, p) + cam_T_world[:, :3, 3]
-        zc = np.where(front, q[:, 2], 1.0)
-        x, y = q[:, 0], q[:, 1]
-        J = np.zeros((q.shape[0], 3, 3))  # d(uL, uR, v)/dq
-        J[:, 0, 0] = J[:, 1, 0] = cam.fsu / zc
-        J[:, 0, 2] = -cam.fsu * x / zc**2
-        J[:, 1, 2] = -cam.fsu * (x - cam.baseline_m) / zc**2
-        J[:, 2, 1] = cam.fsv / zc
-        J[:, 2, 2] = -cam.fsv * y / zc**2
-        J = (J @ R) / self._sigmas[None, :, None] * front[:, None, None]  # whitened, d/dp
+        q[:, 2] = np.where(front, q[:, 2], 1.0)
+        J = self._whitened_point_jacobians(R, q) * front[:, None, None]
         w = front.astype(np.float64)
         ts = np.array([self._pose_stamp[k] for k in frames.tolist()])
         cnt = np.add.reduceat(w, starts)
@@ -672,6 +664,20 @@ class SmootherFilter(_History):
         A += 1e-9 * np.eye(6)
         sol = np.linalg.solve(A, b[:, :, None])[:, :, 0]
         return np.linalg.norm(sol[:, 3:], axis=1)
+
+    def _whitened_point_jacobians(self, R: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """(n, 3, 3) whitened d(uL, uR, v)/dp of stereo observations of world points p
+        seen at camera coordinates ``q`` (n, 3; depth > 0) through camera-from-world
+        rotations ``R`` (n, 3, 3)."""
+        cam = self.calibration.camera
+        x, y, zc = q[:, 0], q[:, 1], q[:, 2]
+        J = np.zeros((q.shape[0], 3, 3))  # d(uL, uR, v)/dq
+        J[:, 0, 0] = J[:, 1, 0] = cam.fsu / zc
+        J[:, 0, 2] = -cam.fsu * x / zc**2
+        J[:, 1, 2] = -cam.fsu * (x - cam.baseline_m) / zc**2
+        J[:, 2, 1] = cam.fsv / zc
+        J[:, 2, 2] = -cam.fsv * y / zc**2
+        return (J @ R) / self._sigmas[None, :, None]
 
     def _remove_factors(self, lm: _Landmark, entries: list, remove: list) -> None:
         """Schedule the removal of stereo factors of ``lm`` (those whose pose is still in
@@ -736,7 +742,6 @@ class SmootherFilter(_History):
         (uL, uR, v) at the estimate) plus their prior. The pose uncertainty is not
         included (conditional, not marginal: GTSAM's marginals of landmarks deep in the
         Bayes tree cost ~50 ms each)."""
-        cam = self.calibration.camera
         n = len(lms)
         info = np.broadcast_to(np.eye(3) / self.options.smoother_landmark_prior_m**2, (n, 3, 3)).copy()
         owner = np.array([j for j, lm in enumerate(lms) for _ in lm.obs], dtype=np.int64)
@@ -748,14 +753,7 @@ class SmootherFilter(_History):
         R = cam_T_world[inv, :3, :3]
         q = np.einsum("kij,kj->ki", R, p[owner]) + cam_T_world[inv, :3, 3]
         ok = q[:, 2] > 1e-6
-        x, y, zc = q[ok, 0], q[ok, 1], q[ok, 2]
-        J = np.zeros((x.size, 3, 3))
-        J[:, 0, 0] = J[:, 1, 0] = cam.fsu / zc
-        J[:, 0, 2] = -cam.fsu * x / zc**2
-        J[:, 1, 2] = -cam.fsu * (x - cam.baseline_m) / zc**2
-        J[:, 2, 1] = cam.fsv / zc
-        J[:, 2, 2] = -cam.fsv * y / zc**2
-        J = (J @ R[ok]) / self._sigmas[None, :, None]
+        J = self._whitened_point_jacobians(R[ok], q[ok])
         np.add.at(info, owner[ok], np.swapaxes(J, 1, 2) @ J)
         return np.linalg.inv(info)
 

@@ -231,9 +231,9 @@ class SlamState:
         return self.cov[rows[:, :, None], rows[:, None, :]]
 
     def landmark_marginals(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """((k, 3) positions, (k, 3, 3) marginal covariances) of the landmarks in ``slots``
-        — :attr:`p_lm_in_world` and :meth:`landmark_cov` of those slots, with one
-        inverse-depth conversion of those slots only."""
+        """((k, 3) positions, (k, 3, 3) marginal covariances, m²) of the landmarks in
+        ``slots``: :attr:`p_lm_in_world` of those slots and, with inverse depth,
+        J Σ_λ Jᵀ with J = dp/dλ at the mean — one conversion of those slots only."""
         slots = np.asarray(slots, dtype=np.int64)
         cov = self.param_cov(slots)
         if not self.inverse_depth:
@@ -244,12 +244,7 @@ class SlamState:
     def landmark_cov(self, slots: np.ndarray) -> np.ndarray:
         """(k, 3, 3) marginal covariances of the positions of the landmarks in ``slots``
         (m²; inverse depth: J Σ_λ Jᵀ with J = dp/dλ at the mean)."""
-        cov = self.param_cov(slots)
-        if not self.inverse_depth:
-            return cov
-        slots = np.asarray(slots, dtype=np.int64)
-        _, J = inverse_depth_to_world(self.lm_mean[slots], self.world_T_anchor[slots])
-        return J @ cov @ np.swapaxes(J, 1, 2)
+        return self.landmark_marginals(slots)[1]
 
     def predict_landmarks(self, tau: float, accel_var: float) -> None:
         """Constant-velocity prediction of every landmark (motion model, lm_dim 6)::

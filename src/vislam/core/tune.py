@@ -26,11 +26,13 @@ goes to −∞ (as ν log σ).
 
 The search (:class:`NoiseSearch`) is log-spaced: a coarse grid over the velocity and
 angular noise, a line over the pixel noise, then a compass (pattern) search: each
-round polls every noise × and ÷ a step around the best so far; the step is kept while a
+round polls every noise × and ÷ a step around the best so far (with a pattern move and
+the maximum of a quadratic fitted to the scores near the best); the step is kept while a
 round improves the best and halved when it does not, and the search ends when the
 smallest step's round does not improve (or after ``max_polls`` rounds); a last
-candidate at the per-axis parabola vertex. The candidates of each round are independent runs, so a caller can
-evaluate them in parallel (:mod:`vislam.tools.tune` does, on Dask).
+candidate at the fitted quadratic's maximum (or the per-axis parabola vertex). The
+candidates of each round are independent runs, so a caller can evaluate them in
+parallel (:mod:`vislam.tools.tune` does, on Dask).
 
 Pure computation: no I/O.
 """
@@ -221,7 +223,8 @@ class SearchSpace:
     refine_rounds: int = 3
     #: At most this many compass rounds in all.
     max_polls: int = 10
-    #: Try the per-axis parabola vertex of the last round as a final candidate.
+    #: Try a final candidate: the maximum of the quadratic fitted near the best at the
+    #: smallest step, or else the per-axis parabola vertex of the last round.
     parabola: bool = True
 
     def __post_init__(self):

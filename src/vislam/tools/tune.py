@@ -90,6 +90,15 @@ def check_estimates(sequence: Sequence) -> dict[str, Any]:
                       "differences along tracks"}
 
 
+def _check_scalar(check: Mapping[str, Any], name: str) -> float | None:
+    """check's estimate of the noise ``name`` as one number (the RMS of its per-axis
+    values), None when check has none."""
+    est = check.get(name)
+    if est is None:
+        return None
+    return float(np.sqrt(np.mean(np.square(est)))) if isinstance(est, list) else float(est)
+
+
 @dataclass
 class TuneResult:
     """What :func:`run_tune` found."""
@@ -115,10 +124,9 @@ class TuneResult:
         check = self.check
         ratio = {}
         for name in TUNED_FIELDS:
-            est = check.get(name)
+            est = _check_scalar(check, name)
             if est is None:
                 continue
-            est = float(np.sqrt(np.mean(np.square(est)))) if isinstance(est, list) else float(est)
             ratio[name] = {"tune": self.tuned[name], "check": est,
                            "tune_over_check": self.tuned[name] / est if est > 0 else None}
         return {
@@ -212,10 +220,9 @@ def _systematic_error_notes(tuned: Mapping[str, float], check: Mapping[str, Any]
     (sparse 0027 ATE 1.92 -> 3.90 m)."""
     out = []
     for name, unit in (("velocity_noise_mps", "m/s"), ("angular_noise_radps", "rad/s")):
-        est = check.get(name)
-        if est is None:
+        white = _check_scalar(check, name)
+        if white is None:
             continue
-        white = float(np.sqrt(np.mean(np.square(est)))) if isinstance(est, list) else float(est)
         default = float(np.max(getattr(options, name)))
         floor = max(white, default)
         if tuned[name] > SYSTEMATIC_RATIO * floor:
@@ -288,11 +295,9 @@ def plot_objective(result: TuneResult, path) -> None:
             ax.scatter(x[clipped], y[clipped], c=rounds[clipped], marker="v", **colour)
         ax.scatter([best.candidate.to_dict()[name]], [best.objective], marker="*", s=220, color="crimson",
                    zorder=5, label=f"chosen {best.candidate.to_dict()[name]:.3g}")
-        est = result.check.get(name)
-        if est is not None:
-            est = float(np.sqrt(np.mean(np.square(est)))) if isinstance(est, list) else float(est)
-            if est > 0:
-                ax.axvline(est, color="gray", ls="--", label=f"vislam check {est:.3g}")
+        est = _check_scalar(result.check, name)
+        if est is not None and est > 0:
+            ax.axvline(est, color="gray", ls="--", label=f"vislam check {est:.3g}")
         ax.set_xscale("log")
         lo, hi = getattr(result.space, name)
         ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0) if hi / lo < 30 else (1.0,)))
