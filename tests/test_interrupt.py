@@ -44,3 +44,33 @@ def test_sigint_leaves_all_or_nothing(dataset, tmp_path, delay_s):
         assert len(stderr.strip().splitlines()) == 1 and "interrupt" in stderr.lower()
         assert present in (set(), EXPECTED | present) and (not present or EXPECTED <= present)
         assert not [p for p in present if p.startswith(".")]  # no staging debris
+
+
+@pytest.mark.skipif(os.name != "posix", reason="process exit codes")
+def test_an_interrupt_wrapped_by_python_is_still_one_line_and_130(tmp_path):
+    """A Ctrl-C that lands in ``__set_name__`` while an imported module defines a class
+    reaches the launcher, on Python 3.11, as a RuntimeError caused by the
+    KeyboardInterrupt (seen under CPU load: a traceback ending in StereoCamera). It is an
+    interrupt all the same; any other error still propagates."""
+    script = tmp_path / "boom.py"
+    script.write_text(
+        "import sys\n"
+        "import vislam.cli\n"
+        "class Descriptor:\n"
+        "    def __set_name__(self, owner, name):\n"
+        "        raise KeyboardInterrupt\n"
+        "def interrupted_while_defining_a_class():\n"
+        "    class Camera:\n"
+        "        x = Descriptor()\n"
+        "def failing():\n"
+        "    raise RuntimeError('a real bug')\n"
+        "vislam.cli.main = interrupted_while_defining_a_class if sys.argv[1] == 'interrupt' else failing\n"
+        "from vislam._launcher import entry_point\n"
+        "sys.argv = ['vislam', 'run']\n"
+        "entry_point()\n")
+    proc = subprocess.run([sys.executable, str(script), "interrupt"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip() == "vislam run: interrupted; no output written"
+    bug = subprocess.run([sys.executable, str(script), "bug"], capture_output=True, text=True, timeout=120)
+    assert bug.returncode == 1 and "RuntimeError: a real bug" in bug.stderr

@@ -27,6 +27,20 @@ def _interrupted(message: str) -> int:
     return INTERRUPT_EXIT_CODE
 
 
+def _is_interrupt(exc: BaseException) -> bool:
+    """True for a KeyboardInterrupt, also one Python wrapped on its way out: Python 3.11
+    turns an exception raised in ``__set_name__`` while a class is created (a Ctrl-C
+    landing while an imported module defines a dataclass) into a RuntimeError whose
+    cause is the interrupt."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def entry_point() -> None:
     """Run the command line and exit with its code."""
     command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
@@ -35,7 +49,9 @@ def entry_point() -> None:
         from vislam.cli import main
 
         code = main()
-    except KeyboardInterrupt:
+    except BaseException as exc:  # noqa: B036 - only interrupts are handled here
+        if not _is_interrupt(exc):
+            raise
         code = _interrupted(f"{name}: interrupted; no output written")
     if code == INTERRUPT_EXIT_CODE:
         # After an interrupt, leave without the interpreter's shutdown: CPython ends a
