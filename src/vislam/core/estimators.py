@@ -177,4 +177,11 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
         result.world_T_imu = final[:done]
         result.pose_covariance = final_cov[:done] if final_cov is not None else None
     result.frame_stats = {name: a[:done] for name, a in frame_stats.items()}
+    bias_log = getattr(filt, "imu_bias_log", None)
+    if bias_log:  # SLAM with the IMU-error state: b̂ of every frame processed
+        imu_bias = np.zeros((done, 6))
+        for t, b in bias_log:
+            if t < done:
+                imu_bias[t] = b
+        result.extra["imu_bias"] = imu_bias
     return result

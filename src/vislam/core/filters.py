@@ -628,6 +628,9 @@ class SlamFilter(_FrozenLog, _History):
         #: Updates done per frame by the iterated update (update_iterations > 1), one
         #: entry per frame with a joint update.
         self.update_counts: list[int] = []
+        #: With the IMU-error state: (frame, b̂ (6,)) of every frame finished, in order
+        #: (the estimate after that frame's update); empty without it.
+        self.imu_bias_log: list = []
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
         self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames) if opts.remaps_stalled_tracks else None
 
@@ -906,6 +909,11 @@ class SlamFilter(_FrozenLog, _History):
             raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
         if (np.diagonal(self.state.cov) < -1e-9).any():
             raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
+
+    def _record(self, stats: FrameStats) -> None:
+        super()._record(stats)
+        if self.imu_bias_model is not None:
+            self.imu_bias_log.append((stats.frame, self.state.imu_bias.copy()))
 
     def _require_healthy(self) -> None:
         if self.failed is not None:
