@@ -208,3 +208,19 @@ def test_bias_options_load_from_a_mapping():
     np.testing.assert_array_equal(opts.imu_bias_sigma, [0.3, 0.2, 0.1, 0.003, 0.003, 0.003])
     assert opts.imu_bias_time_constant_s == 20.0
     assert not FilterOptions().imu_bias_enabled
+
+
+def test_run_flags_set_the_bias_options():
+    import argparse
+
+    from vislam.cli.run import add_filter_arguments, options_from_args
+
+    parser = argparse.ArgumentParser()
+    add_filter_arguments(parser)
+    opts = options_from_args(parser.parse_args(["--imu-bias-sigma", "0.3,0.003", "--imu-bias-time-constant", "20"]))
+    assert (opts.imu_bias_sigma_mps, opts.imu_bias_sigma_radps, opts.imu_bias_time_constant_s) == (0.3, 0.003, 20.0)
+    assert not options_from_args(parser.parse_args([])).imu_bias_enabled
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--imu-bias-sigma", "0.3"])
+    with pytest.raises(ConfigError, match="--imu-bias-time-constant"):
+        options_from_args(parser.parse_args(["--imu-bias-time-constant", "0"]))
