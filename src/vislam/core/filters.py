@@ -628,9 +628,12 @@ class SlamFilter(_FrozenLog, _History):
         #: Updates done per frame by the iterated update (update_iterations > 1), one
         #: entry per frame with a joint update.
         self.update_counts: list[int] = []
-        #: With the IMU-error state: (frame, b̂ (6,)) of every frame finished, in order
-        #: (the estimate after that frame's update); empty without it.
-        self.imu_bias_log: list = []
+        #: With the IMU-error state: (frame, b̂ (6,)) of the frames finished, in order (the
+        #: estimate after that frame's update; the batch driver takes and clears them, at
+        #: most :attr:`HISTORY` are kept); empty without it.
+        from collections import deque
+
+        self.imu_bias_log = deque(maxlen=self.HISTORY)
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
         self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames) if opts.remaps_stalled_tracks else None
 
@@ -659,7 +662,8 @@ class SlamFilter(_FrozenLog, _History):
             for frame in frames[1:] if self._t < 0 else frames:  # the first frame has no prediction
                 u = _twist(frame.linear_velocity_mps, frame.angular_velocity_radps)
                 if bias is not None:
-                    u = u - bias  # the IMU-error estimate of the last updated frame
+                    u = u - bias  # the IMU-error estimate, predicted: b̂ ← a b̂ per step
+                    bias = self.imu_bias_model.decay(frame.dt_s) * bias
                 u = body_twist(u, mean, self.options.velocity_frame)
                 mean = se3_exp(-frame.dt_s * u) @ mean
         return se3_inverse(mean)
