@@ -46,7 +46,19 @@ FLAG_FIELDS = {
     "ekf": ("ekf", "--ekf"),
     "keep_all_landmarks": ("keep_all_landmarks", "--keep-all-landmarks"),
     "refine": ("refine", "--refine"),
+    "imu_bias_time_constant": ("imu_bias_time_constant_s", "--imu-bias-time-constant"),
 }
+
+
+def _bias_sigmas(text: str) -> tuple[float, float]:
+    """``--imu-bias-sigma MPS,RADPS``: the two stationary σ of the IMU-error state."""
+    try:
+        values = tuple(float(p) for p in str(text).split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 2 or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected two numbers >= 0 MPS,RADPS (e.g. 0.3,0.003), got {text!r}")
+    return values
 
 
 def _probability_or_off(text: str):
@@ -151,6 +163,11 @@ def add_filter_arguments(parser) -> None:
                        help="chi-square gate probability of the stereo innovation, or 'off' (default 0.95)")
     noise.add_argument("--ekf", choices=EKF_VARIANTS,
                        help="oc: observability-constrained EKF (default); standard: the report's equations")
+    noise.add_argument("--imu-bias-sigma", type=_bias_sigmas, metavar="MPS,RADPS",
+                       help="SLAM: estimate a slowly varying error of the velocity samples (IMU-error state, a "
+                       "Gauss-Markov process) with these stationary 1-sigma values, m/s and rad/s (default 0,0: off)")
+    noise.add_argument("--imu-bias-time-constant", type=float, metavar="S",
+                       help="correlation time of the IMU-error state, s (default 5)")
     noise.add_argument("--keep-all-landmarks", action="store_true", default=None,
                        help="keep every landmark in the SLAM state (the report's variant; slower)")
     noise.add_argument("--auto", action="store_true",
@@ -275,6 +292,11 @@ def options_from_args(args, suggestions=None):
         if value is not None:
             overrides[field] = value
             flag_names[field] = flag
+    sigmas = getattr(args, "imu_bias_sigma", None)
+    if sigmas is not None:
+        for field, value in zip(("imu_bias_sigma_mps", "imu_bias_sigma_radps"), sigmas):
+            overrides[field] = value
+            flag_names[field] = "--imu-bias-sigma"
     return resolve_options(args.config, overrides, flag_names, base=suggestions)
 
 

@@ -108,6 +108,8 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
     has_cov = True
     frame_seconds = np.zeros(T)
     frame_stats = {name: np.zeros(T) for name in FRAME_STAT_FIELDS}
+    bias_log = getattr(filt, "imu_bias_log", None)  # SLAM with the IMU-error state: b̂ per frame
+    imu_bias = np.zeros((T, 6)) if bias_log is not None and filt.imu_bias_model is not None else None
     error = None
     done = 0
 
@@ -124,6 +126,10 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
             for name in FRAME_STAT_FIELDS:
                 frame_stats[name][t] = getattr(fs, name)
             done = t + 1
+        if imu_bias is not None:
+            for t, b in bias_log:
+                imu_bias[t] = b
+            bias_log.clear()
         return processed
 
     for frame in sequence.frames():
@@ -177,4 +183,6 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
         result.world_T_imu = final[:done]
         result.pose_covariance = final_cov[:done] if final_cov is not None else None
     result.frame_stats = {name: a[:done] for name, a in frame_stats.items()}
+    if imu_bias is not None:
+        result.extra["imu_bias"] = imu_bias[:done]
     return result

@@ -44,7 +44,8 @@ import numpy as np
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
 from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
-from vislam.core.propagation import body_twist, predict_pose, predict_state, prediction_twist
+from vislam.core.propagation import (ImuBias, bias_twist_jacobian, body_twist, predict_pose, predict_state,
+                                     prediction_twist)
 from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, LandmarkMap, RunStats
 from vislam.core.sequence import Calibration, Frame
 from vislam.core.stalls import StallRemapBuffer
@@ -594,8 +595,13 @@ class SlamFilter(_FrozenLog, _History):
         self._velocity_var = opts.landmark_velocity_std_mps**2
         self._accel_var = opts.landmark_acceleration_std_mps2**2
         self._update = slam_update_reference if reference else slam_update
+        #: The IMU-error state's model (FilterOptions.imu_bias_sigma_*), or None (off).
+        self.imu_bias_model = ImuBias(opts.imu_bias_sigma, opts.imu_bias_time_constant_s) \
+            if opts.imu_bias_enabled else None
         self.state = SlamState(np.eye(4), opts.initial_pose_covariance, lm_dim=6 if self._motion else 3,
-                               inverse_depth=opts.landmark_parametrization == "inverse_depth" and not self._motion)
+                               inverse_depth=opts.landmark_parametrization == "inverse_depth" and not self._motion,
+                               bias_covariance=None if self.imu_bias_model is None
+                               else np.diag(self.imu_bias_model.variance))
         # one row per track in progress; the drift test's per-landmark sums live there too
         self.tracks = TrackTable({"drift_sum": ((4,), np.float64, 0.0), "drift_n": ((), np.float64, 0.0)})
         self._builder = MapBuilder()
@@ -622,6 +628,12 @@ class SlamFilter(_FrozenLog, _History):
         #: Updates done per frame by the iterated update (update_iterations > 1), one
         #: entry per frame with a joint update.
         self.update_counts: list[int] = []
+        #: With the IMU-error state: (frame, b̂ (6,)) of the frames finished, in order (the
+        #: estimate after that frame's update; the batch driver takes and clears them, at
+        #: most :attr:`HISTORY` are kept); empty without it.
+        from collections import deque
+
+        self.imu_bias_log = deque(maxlen=self.HISTORY)
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
         self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames) if opts.remaps_stalled_tracks else None
 
@@ -646,9 +658,13 @@ class SlamFilter(_FrozenLog, _History):
         mean = self.state.imu_T_world
         if self.stall_buffer is not None and self.stall_buffer.n_pending:
             frames = self.stall_buffer.pending_frames()
+            bias = self.state.imu_bias if self.imu_bias_model is not None else None
             for frame in frames[1:] if self._t < 0 else frames:  # the first frame has no prediction
-                u = body_twist(_twist(frame.linear_velocity_mps, frame.angular_velocity_radps), mean,
-                               self.options.velocity_frame)
+                u = _twist(frame.linear_velocity_mps, frame.angular_velocity_radps)
+                if bias is not None:
+                    u = u - bias  # the IMU-error estimate, predicted: b̂ ← a b̂ per step
+                    bias = self.imu_bias_model.decay(frame.dt_s) * bias
+                u = body_twist(u, mean, self.options.velocity_frame)
                 mean = se3_exp(-frame.dt_s * u) @ mean
         return se3_inverse(mean)
 
@@ -657,6 +673,17 @@ class SlamFilter(_FrozenLog, _History):
         """(6, 6) covariance of the left perturbation of imu_T_world, (v, ω) order, at
         the frame of :attr:`imu_T_world` (a copy)."""
         return self.state.pose_cov.copy()
+
+    @property
+    def imu_bias(self) -> np.ndarray | None:
+        """(6,) estimate b̂ = (b_v, b_ω) of the IMU-error state at the frame of
+        :attr:`imu_T_world` (m/s, rad/s; a copy), or None when it is off."""
+        return self.state.imu_bias.copy() if self.imu_bias_model is not None else None
+
+    @property
+    def imu_bias_covariance(self) -> np.ndarray | None:
+        """(6, 6) covariance of :attr:`imu_bias` (a copy), or None when it is off."""
+        return self.state.bias_cov.copy() if self.imu_bias_model is not None else None
 
     @property
     def live_landmark_ids(self) -> np.ndarray:
@@ -715,13 +742,19 @@ class SlamFilter(_FrozenLog, _History):
             μ ← exp(−τ û) μ,   Σ_pp ← F Σ_pp Fᵀ + τ² W,   Σ_pl ← F Σ_pl,   F = exp(−τ ad(u))
 
         (OC-EKF: F* = F Ad(exp(ε)) with ε the last update's correction; with the landmark
-        motion model, m ← m + τ v for every landmark.)"""
+        motion model, m ← m + τ v for every landmark; with the IMU-error state the sample
+        is corrected by b̂ and the core block (pose, b) is propagated, see
+        :mod:`vislam.core.propagation`.)"""
         self._require_healthy()
         tau = _check_dt(dt_s)
-        u, du = prediction_twist(_twist(linear_velocity, angular_velocity), self.state.imu_T_world,
-                                 self.options.velocity_frame, self._attitude_jacobian)
+        u = _twist(linear_velocity, angular_velocity)
+        bias, D = self.imu_bias_model, None
+        if bias is not None:
+            u = u - self.state.imu_bias  # u_meas − b̂
+            D = bias_twist_jacobian(self.state.imu_T_world, self.options.velocity_frame)
+        u, du = prediction_twist(u, self.state.imu_T_world, self.options.velocity_frame, self._attitude_jacobian)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None, du)
+            predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None, du, bias, D)
             if self._motion:
                 self.state.predict_landmarks(tau, self._accel_var)
         self._last_correction = np.zeros(6)  # used once: the next correction comes with the next update
@@ -880,6 +913,11 @@ class SlamFilter(_FrozenLog, _History):
             raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
         if (np.diagonal(self.state.cov) < -1e-9).any():
             raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
+
+    def _record(self, stats: FrameStats) -> None:
+        super()._record(stats)
+        if self.imu_bias_model is not None:
+            self.imu_bias_log.append((stats.frame, self.state.imu_bias.copy()))
 
     def _require_healthy(self) -> None:
         if self.failed is not None:

@@ -40,6 +40,7 @@ __all__ = [
     "so3_log",
     "so3_left_jacobian",
     "so3_left_jacobian_inverse",
+    "se3_left_jacobian",
     "se3_hat",
     "se3_vee",
     "se3_exp",
@@ -335,6 +336,43 @@ def se3_adjoint(T) -> np.ndarray:
         out[:3, 3:] = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]) @ R
     else:
         out[..., :3, 3:] = so3_hat(T[..., :3, 3]) @ R
+    return out
+
+
+def se3_left_jacobian(xi) -> np.ndarray:
+    """Left Jacobian of SE(3) at one twist ξ = (ρ, φ), (v, ω) order: (6, 6)
+    ``[[J, Q], [0, J]]`` with J the SO(3) left Jacobian of φ and (Barfoot, State
+    Estimation for Robotics, eq. 7.86)::
+
+        Q = ½ρ^ + c₁ (φ^ρ^ + ρ^φ^ + φ^ρ^φ^) + c₂ (φ^φ^ρ^ + ρ^φ^φ^ − 3φ^ρ^φ^)
+              + c₃ (φ^ρ^φ^φ^ + φ^φ^ρ^φ^),
+        c₁ = (θ − sin θ)/θ³,  c₂ = (θ² + 2cos θ − 2)/(2θ⁴),  c₃ = (2θ − 3sin θ + θ cos θ)/(2θ⁵)
+
+    so that ``exp(ξ + dξ) ≈ exp((J_l(ξ) dξ)^) exp(ξ)`` (equivalently J_l = Σ ad(ξ)ⁿ/(n+1)!).
+    Below SMALL_ANGLE the coefficients are their Taylor series."""
+    xi = _as_float(xi).reshape(6)
+    phi = xi[3:]
+    theta = float(np.linalg.norm(phi))
+    t2 = theta * theta
+    if theta < SMALL_ANGLE:
+        c1 = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
+        c2 = 1.0 / 24.0 - t2 / 720.0 + t2 * t2 / 40320.0
+        c3 = 1.0 / 120.0 - t2 / 2520.0 + t2 * t2 / 120960.0
+    else:
+        s, c = math.sin(theta), math.cos(theta)
+        c1 = (theta - s) / (theta * t2)
+        c2 = (t2 + 2.0 * c - 2.0) / (2.0 * t2 * t2)
+        c3 = (2.0 * theta - 3.0 * s + theta * c) / (2.0 * t2 * t2 * theta)
+    P = so3_hat(phi)
+    Rh = so3_hat(xi[:3])
+    PR, RP, PP = P @ Rh, Rh @ P, P @ P
+    PRP = PR @ P
+    Q = 0.5 * Rh + c1 * (PR + RP + PRP) + c2 * (PP @ Rh + RP @ P - 3.0 * PRP) + c3 * (PRP @ P + PP @ RP)
+    out = np.zeros((6, 6))
+    J = so3_left_jacobian(phi)
+    out[:3, :3] = J
+    out[3:, 3:] = J
+    out[:3, 3:] = Q
     return out
 
 

@@ -54,7 +54,7 @@ VELOCITY_FRAMES = ("body", "level")
 DATA_CORRECTION_FIELDS = ("gyro_bias_radps", "velocity_bias_mps", "imu_camera_rotation_correction_deg", "cam_T_imu",
                           "velocity_association", "time_offset_s", "velocity_scale", "timestamp_scale")
 #: Options that are a number or three numbers (per IMU axis x, y, z).
-PER_AXIS_FIELDS = ("velocity_noise_mps", "angular_noise_radps")
+PER_AXIS_FIELDS = ("velocity_noise_mps", "angular_noise_radps", "imu_bias_sigma_mps", "imu_bias_sigma_radps")
 #: Options that are exactly three numbers.
 VECTOR_FIELDS = ("gyro_bias_radps", "velocity_bias_mps", "imu_camera_rotation_correction_deg")
 
@@ -227,6 +227,24 @@ class FilterOptions:
     #: level_velocity_jacobian; measurements of that combination in the README's
     #: consistency section).
     update_iteration_tolerance: float = 0.5
+
+    # --- IMU-error state (SLAM; see vislam.core.propagation) ----------------------------
+    #: Stationary 1σ of the slowly varying error b_v of the recorded linear-velocity
+    #: samples (m/s; one number or three, per axis of the frame the samples are given in,
+    #: see velocity_frame). With this or imu_bias_sigma_radps > 0 the SLAM filter
+    #: estimates b = (b_v, b_ω), a first-order Gauss-Markov process (u_meas = u_true + b +
+    #: w; b_{k+1} = a b_k + η, a = exp(−τ/T_c), η ~ N(0, (1 − a²) σ_b²)), jointly with the
+    #: pose and landmarks; the prediction uses u_meas − b̂. The white part stays
+    #: velocity_noise_mps. On top of velocity_bias_mps/gyro_bias_radps (constant data
+    #: corrections). Default 0 (with imu_bias_sigma_radps 0): off, the filter without it.
+    #: Localization, mapping and the smoother ignore it.
+    imu_bias_sigma_mps: float | tuple[float, float, float] = 0.0
+    #: Stationary 1σ of the slowly varying error b_ω of the angular-velocity samples
+    #: (rad/s; one number or three, IMU axes). See imu_bias_sigma_mps. Default 0.
+    imu_bias_sigma_radps: float | tuple[float, float, float] = 0.0
+    #: Correlation time T_c of the IMU-error state (s, > 0): a = exp(−τ/T_c) per step. A
+    #: long T_c makes b nearly a constant bias. Default 5 s.
+    imu_bias_time_constant_s: float = 5.0
 
     # --- state management ------------------------------------------------------------
     #: Keep every landmark in the SLAM state for the whole run (the report's variant;
@@ -411,7 +429,7 @@ class FilterOptions:
                     raise ConfigError(f"{f.name} must be >= 0, got {value!r}")
         if self.pixel_noise_px <= 0:
             raise ConfigError("pixel_noise_px must be > 0 (the update needs a positive-definite V)")
-        for name in ("smoother_window_s", "smoother_kernel_scale", "smoother_landmark_prior_m", "refine_kernel_scale",
+        for name in ("imu_bias_time_constant_s", "smoother_window_s", "smoother_kernel_scale", "smoother_landmark_prior_m", "refine_kernel_scale",
                      "refine_outlier_px"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")
@@ -428,6 +446,17 @@ class FilterOptions:
     def W(self) -> np.ndarray:
         """6x6 motion noise covariance of one velocity sample, (v, ω) order."""
         return np.diag(np.concatenate([self.velocity_noise_per_axis, self.angular_noise_per_axis]) ** 2)
+
+    @property
+    def imu_bias_enabled(self) -> bool:
+        """Whether the SLAM filter carries the IMU-error state (some σ_b > 0)."""
+        return bool(np.any(self.imu_bias_sigma > 0))
+
+    @property
+    def imu_bias_sigma(self) -> np.ndarray:
+        """(6,) stationary σ of b = (b_v, b_ω) (m/s ×3, rad/s ×3)."""
+        return np.concatenate([np.broadcast_to(np.asarray(self.imu_bias_sigma_mps, dtype=np.float64), (3,)),
+                               np.broadcast_to(np.asarray(self.imu_bias_sigma_radps, dtype=np.float64), (3,))])
 
     @property
     def velocity_noise_per_axis(self) -> np.ndarray:

@@ -10,6 +10,28 @@ Prediction of mean and covariance (left perturbation, see :mod:`vislam.core.stat
     Σ_pp ← F Σ_pp Fᵀ + τ² W,     F = exp(−τ ad(u)) = Ad(exp(−τ u))
     Σ_pl ← F Σ_pl                (landmarks are static: identity on their blocks)
 
+Optional IMU-error state (``FilterOptions.imu_bias_sigma_mps/_radps`` > 0, see
+:class:`ImuBias`): a 6-vector b = (b_v, b_ω) of slowly varying errors of the *recorded*
+samples (in the frame the samples are given in: with levelled velocities b_v is a bias of
+the levelled velocity), a first-order Gauss-Markov process::
+
+    u_meas = u_true + b + w,                 w ~ N(0, W)                (per sample)
+    b_{k+1} = a b_k + η,   a = exp(−τ/T_c),  η ~ N(0, (1 − a²) diag(σ_b²))   (stationary σ_b)
+
+The core of the state is then x = (δ, b) (12 rows: the pose perturbation, then b) and
+the prediction (:func:`predict_state`) is::
+
+    û = body(u_meas − b̂, μ)                       # the mean uses the corrected sample
+    μ ← exp(−τ û) μ,   b̂ ← a b̂
+    G = ∂δ'/∂b = τ J_l(−τ û) D,   D = ∂û/∂u_meas = blockdiag(R_bw Rz(ψ), I)   ("body": D = I)
+    Φ = [[F, G], [0, a I]]                        # F as above (with the OC correction)
+    Σ_cc ← Φ Σ_cc Φᵀ + blockdiag(τ² W, (1 − a²) diag(σ_b²))
+    Σ_cl ← Φ Σ_cl                                 (landmarks static)
+
+G from exp(−τ (û − D δb)) ≈ exp((τ J_l(−τ û) D δb)^) exp(−τ û): a positive error of b
+means the true twist is smaller than the corrected sample (J_l: SE(3)'s left Jacobian,
+:func:`vislam.core.lie.se3_left_jacobian`).
+
 Velocity association (measured against the KITTI ground truth, see the README): the
 velocity sample of frame k+1 is the twist over the interval between frames k and k+1,
 ``τ_k = t_{k+1} − t_k``. On sparse 0027 this gives a dead-reckoning ATE of 2.03 m,
@@ -20,11 +42,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from vislam.core.lie import se3_adjoint, se3_exp, so3_exp, so3_left_jacobian
+from vislam.core.lie import se3_adjoint, se3_exp, se3_left_jacobian, so3_exp, so3_left_jacobian
 from vislam.core.sequence import Sequence
 
 __all__ = ["motion_increments", "predict_pose", "predict_state", "dead_reckoning", "level_to_body", "body_to_level", "body_twist",
-           "body_twist_jacobian", "prediction_twist"]
+           "body_twist_jacobian", "prediction_twist", "ImuBias", "bias_twist_jacobian", "bias_transition",
+           "pose_transition"]
 
 
 def _rotate_z(psi: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -132,6 +155,15 @@ def predict_pose(imu_T_world: np.ndarray, pose_cov: np.ndarray, tau: float, u: n
     F* = F Ad(exp(ε)), the smallest change of F that carries the unobservable directions
     −Ad(μ_{t|t−1}) of the previous prior onto −Ad(μ_{t+1|t}) of the new one.
     """
+    step, F = pose_transition(tau, u, oc_correction, du)
+    mean = step @ imu_T_world  # μ' = exp(−τ û) μ
+    cov = F @ pose_cov @ F.T + (tau * tau) * W  # Σ' = F Σ Fᵀ + τ² W
+    return mean, 0.5 * (cov + cov.T), F
+
+
+def pose_transition(tau: float, u: np.ndarray, oc_correction: np.ndarray | None = None,
+                    du: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(exp(−τ û), F) of one pose step with the body twist ``u`` (see :func:`predict_pose`)."""
     step = se3_exp(-tau * u)  # exp(−τ û)
     F = se3_adjoint(step)  # exp(−τ ad(u)) = Ad(exp(−τ û))
     if du is not None:
@@ -141,14 +173,56 @@ def predict_pose(imu_T_world: np.ndarray, pose_cov: np.ndarray, tau: float, u: n
         F[:3] -= tau * (so3_left_jacobian(-tau * u[3:]) @ du[:3])
     if oc_correction is not None:
         F = F @ se3_adjoint(se3_exp(oc_correction))  # F* = F Ad(exp(ε))
-    mean = step @ imu_T_world  # μ' = exp(−τ û) μ
-    cov = F @ pose_cov @ F.T + (tau * tau) * W  # Σ' = F Σ Fᵀ + τ² W
-    return mean, 0.5 * (cov + cov.T), F
+    return step, F
+
+
+class ImuBias:
+    """The Gauss-Markov model of the IMU-error state b = (b_v, b_ω) (module docstring).
+
+    Args:
+        sigma: (6,) stationary 1σ of b (m/s ×3, rad/s ×3).
+        time_constant_s: correlation time T_c (s), > 0.
+    """
+
+    def __init__(self, sigma, time_constant_s: float):
+        self.sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (6,)).copy()
+        self.variance = self.sigma**2  # diag(σ_b²), also the initial Σ_bb
+        self.time_constant_s = float(time_constant_s)
+
+    def decay(self, tau: float) -> float:
+        """a = exp(−τ/T_c)."""
+        return float(np.exp(-tau / self.time_constant_s))
+
+    def noise(self, tau: float) -> np.ndarray:
+        """(6,) diagonal of Q_b = (1 − a²) diag(σ_b²), so that Σ_bb stays diag(σ_b²) in the stationary state."""
+        a = self.decay(tau)
+        return (1.0 - a * a) * self.variance
+
+
+def bias_twist_jacobian(imu_T_world: np.ndarray, velocity_frame: str) -> np.ndarray:
+    """(6, 6) D = ∂û/∂u_meas of :func:`body_twist`: blockdiag(R_bw Rz(ψ), I) for levelled
+    velocities (the map is linear in v), the identity for body velocities."""
+    D = np.eye(6)
+    if velocity_frame == "level":
+        D[:3, :3] = level_to_body(imu_T_world, np.eye(3)).T  # columns: level_to_body of e_x, e_y, e_z
+    return D
+
+
+def bias_transition(tau: float, u: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """(6, 6) G = ∂δ_{k+1}/∂b_k = τ J_l(−τ û) D for the body twist û = body(u_meas − b̂)
+    and D of :func:`bias_twist_jacobian`: exp(−τ (û − D δb)) ≈ exp((τ J_l(−τ û) D δb)^) exp(−τ û)."""
+    return tau * (se3_left_jacobian(-tau * u) @ D)
 
 
 def predict_state(state, tau: float, u: np.ndarray, W: np.ndarray, oc_correction: np.ndarray | None = None,
-                  du: np.ndarray | None = None) -> None:
-    """Prediction of the joint SLAM state in place (pose block and pose–landmark blocks)."""
+                  du: np.ndarray | None = None, bias: ImuBias | None = None, D: np.ndarray | None = None) -> None:
+    """Prediction of the joint SLAM state in place (pose block and pose–landmark blocks;
+    with the IMU-error state, ``bias`` its model and ``D`` of :func:`bias_twist_jacobian`
+    at the prior, the whole core block; ``u`` is then the body twist of the corrected
+    sample u_meas − b̂)."""
+    if state.core_dim > 6:
+        _predict_state_with_bias(state, tau, u, W, oc_correction, du, bias, D)
+        return
     mean, pose_cov, F = predict_pose(state.imu_T_world, state.pose_cov, tau, u, W, oc_correction, du)
     state.imu_T_world = mean
     n = state.dim
@@ -158,6 +232,29 @@ def predict_state(state, tau: float, u: np.ndarray, W: np.ndarray, oc_correction
         cross = F @ cov[:6, 6:n]  # Σ_pl ← F Σ_pl
         cov[:6, 6:n] = cross
         cov[6:n, :6] = cross.T
+
+
+def _predict_state_with_bias(state, tau, u, W, oc_correction, du, bias: ImuBias, D) -> None:
+    """:func:`predict_state` with the IMU-error block at rows 6:12 (module docstring)."""
+    step, F = pose_transition(tau, u, oc_correction, du)
+    a = bias.decay(tau)
+    c = state.core_dim
+    Phi = np.zeros((c, c))
+    Phi[:6, :6] = F
+    Phi[:6, 6:c] = bias_transition(tau, u, D)  # G = τ J_l(−τ û) D
+    Phi[6:c, 6:c] = a * np.eye(c - 6)
+    state.imu_T_world = step @ state.imu_T_world  # μ' = exp(−τ û) μ
+    state.imu_bias = a * state.imu_bias  # b̂' = a b̂
+    n = state.dim
+    cov = state.cov
+    rows = Phi @ cov[:c, :n]  # Φ Σ_c,x for every x (core and landmarks)
+    core = rows[:, :c] @ Phi.T  # Φ Σ_cc Φᵀ
+    core[:6, :6] += (tau * tau) * W  # + τ² W
+    core[np.arange(6, c), np.arange(6, c)] += bias.noise(tau)  # + (1 − a²) diag(σ_b²)
+    cov[:c, :c] = 0.5 * (core + core.T)
+    if n > c:
+        cov[:c, c:n] = rows[:, c:n]  # Σ_cl ← Φ Σ_cl
+        cov[c:n, :c] = rows[:, c:n].T
 
 
 def dead_reckoning(sequence: Sequence, W: np.ndarray, initial_cov: np.ndarray, velocity_frame: str = "level"):

@@ -140,6 +140,9 @@ class RunResult:
         frame_stats: per-frame statistics, one (T,) array per field of
             :class:`vislam.core.filters.FrameStats` (observations, used, gated, repeated,
             initialized, rejected, live_landmarks, nis_mean, nis_count), or None.
+        extra: more results of some runs, e.g. ``"imu_bias"``: (T, 6) estimate b̂ =
+            (b_v, b_ω) of the SLAM filter's IMU-error state after each frame (m/s,
+            rad/s), when it is on (FilterOptions.imu_bias_sigma_*).
     """
 
     mode: str

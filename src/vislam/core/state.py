@@ -20,9 +20,15 @@ Variables (the report's):
   and, with the landmark motion model (the report's proposed fix for moving
   landmarks; Cartesian only), their velocities ``v_lm_in_world`` (3 more each).
 
-Covariance layout: one symmetric matrix Σ of size ``n = 6 + d L`` for ``L`` landmarks of
-``d = lm_dim`` (3, or 6 with velocities) dimensions, the pose block first (rows 0:6),
-then landmark *slot* ``s`` at rows ``6 + d s : 6 + d (s + 1)`` (position first).
+Optionally (``core_dim`` 12) the **IMU-error state** b = (b_v, b_ω) (``imu_bias``, additive;
+see :mod:`vislam.core.propagation` for its Gauss-Markov model): slowly varying errors of
+the recorded velocity samples, estimated with the rest.
+
+Covariance layout: one symmetric matrix Σ of size ``n = c + d L`` for ``L`` landmarks of
+``d = lm_dim`` (3, or 6 with velocities) dimensions. The *core* block comes first, rows
+0:c with ``c = core_dim``: the pose (rows 0:6) and, with the IMU-error state, b (rows
+6:12); then landmark *slot* ``s`` at rows ``c + d s : c + d (s + 1)`` (position first).
+``POSE_DIM`` (6) is the pose itself; the landmarks start at ``core_dim``.
 Σ lives in a preallocated buffer with slack (it grows by 25 % when more landmarks are in
 view than ever before, and is compacted in place when landmarks leave), so steady-state
 frames allocate no new covariance and its size follows the landmarks in view.
@@ -34,9 +40,11 @@ import numpy as np
 
 from vislam.core.bookkeeping import sorted_lookup
 
-__all__ = ["SlamState", "POSE_DIM", "LM_DIM", "inverse_depth_to_world", "MIN_INVERSE_DEPTH"]
+__all__ = ["SlamState", "POSE_DIM", "BIAS_DIM", "LM_DIM", "inverse_depth_to_world", "MIN_INVERSE_DEPTH"]
 
 POSE_DIM = 6
+#: Rows of the optional IMU-error state b = (b_v, b_ω).
+BIAS_DIM = 6
 LM_DIM = 3
 
 
@@ -68,7 +76,7 @@ class SlamState:
     GROWTH = 1.25
 
     def __init__(self, imu_T_world: np.ndarray, pose_covariance: np.ndarray, capacity_landmarks: int = 64,
-                 lm_dim: int = LM_DIM, inverse_depth: bool = False):
+                 lm_dim: int = LM_DIM, inverse_depth: bool = False, bias_covariance: np.ndarray | None = None):
         if lm_dim not in (3, 6):
             raise ValueError("lm_dim must be 3 (position) or 6 (position and velocity)")
         if inverse_depth and lm_dim != 3:
@@ -77,9 +85,16 @@ class SlamState:
         #: Landmarks in the anchored inverse-depth chart (else Cartesian).
         self.inverse_depth = bool(inverse_depth)
         self.imu_T_world = np.array(imu_T_world, dtype=np.float64)
-        cap = POSE_DIM + lm_dim * max(int(capacity_landmarks), 1)
+        #: Rows of the core block (pose, and the IMU-error state when ``bias_covariance``
+        #: is given): the landmarks start here.
+        self.core_dim = POSE_DIM if bias_covariance is None else POSE_DIM + BIAS_DIM
+        #: (6,) mean of the IMU-error state b = (b_v, b_ω) (zero and unused without it).
+        self.imu_bias = np.zeros(BIAS_DIM)
+        cap = self.core_dim + lm_dim * max(int(capacity_landmarks), 1)
         self._buffer = np.zeros((cap, cap))
         self._buffer[:POSE_DIM, :POSE_DIM] = pose_covariance
+        if bias_covariance is not None:
+            self._buffer[POSE_DIM:self.core_dim, POSE_DIM:self.core_dim] = bias_covariance  # Σ_bb
         self.n_landmarks = 0
         #: (L,) dataset id of the landmark in each slot.
         self.landmark_ids = np.zeros(0, dtype=np.int64)
@@ -100,7 +115,7 @@ class SlamState:
     # --- sizes and views -------------------------------------------------------------
     @property
     def dim(self) -> int:
-        return POSE_DIM + self.lm_dim * self.n_landmarks
+        return self.core_dim + self.lm_dim * self.n_landmarks
 
     @property
     def cov(self) -> np.ndarray:
@@ -113,12 +128,22 @@ class SlamState:
         return self._buffer[:POSE_DIM, :POSE_DIM]
 
     @property
+    def has_bias(self) -> bool:
+        """Whether the state holds the IMU-error block (rows 6:12)."""
+        return self.core_dim > POSE_DIM
+
+    @property
+    def bias_cov(self) -> np.ndarray | None:
+        """View of Σ_bb (6x6), or None without the IMU-error state."""
+        return self._buffer[POSE_DIM:self.core_dim, POSE_DIM:self.core_dim] if self.has_bias else None
+
+    @property
     def capacity(self) -> int:
         return self._buffer.shape[0]
 
     def landmark_rows(self, slots: np.ndarray) -> np.ndarray:
         """(k, d) covariance row indices of the given slots (position rows first)."""
-        return POSE_DIM + self.lm_dim * np.asarray(slots, dtype=np.int64)[:, None] + np.arange(self.lm_dim)
+        return self.core_dim + self.lm_dim * np.asarray(slots, dtype=np.int64)[:, None] + np.arange(self.lm_dim)
 
     def slots_of(self, ids: np.ndarray) -> np.ndarray:
         """Slot of each dataset id, −1 for ids not in the state (a binary search in the
@@ -191,7 +216,7 @@ class SlamState:
             return
         keep_slot = np.ones(self.n_landmarks, dtype=bool)
         keep_slot[slots] = False
-        keep_rows = np.concatenate([np.arange(POSE_DIM), self.landmark_rows(np.nonzero(keep_slot)[0]).ravel()])
+        keep_rows = np.concatenate([np.arange(self.core_dim), self.landmark_rows(np.nonzero(keep_slot)[0]).ravel()])
         m = keep_rows.size
         n = self.dim
         # Compact in place, Σ' = Σ[keep, keep]: the kept rows form a few runs of consecutive
@@ -267,6 +292,7 @@ class SlamState:
         return bool(
             np.isfinite(self.imu_T_world).all()
             and np.isfinite(self.lm_mean).all()
+            and np.isfinite(self.imu_bias).all()
             and np.isfinite(self.v_lm_in_world).all()
             and np.isfinite(self._buffer[:n, :n]).all()
         )

@@ -12,6 +12,11 @@ Jacobians at the mean (left perturbation of T, additive on m)::
 
 Each observation touches the pose block and one landmark block only, so the products
 with the stacked Jacobian H are formed from those blocks (never a dense 4N x n H).
+With the IMU-error state (``state.core_dim`` 12, rows 6:12 of Σ) H has zero columns for
+b: S only involves the pose and landmark blocks, the gain Σ Hᵀ S⁻¹ has rows for b
+(through Σ_b,pose and Σ_b,lm), and the correction applies b̂ ← b̂ + δ_b; the landmarks
+start at ``core_dim``. The OC projection leaves b out (b is not moved by the global
+gauge: its block of the nullspace is zero).
 """
 
 from __future__ import annotations
@@ -249,10 +254,14 @@ def _solve_lower(L: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _apply_correction(state: SlamState, dx: np.ndarray) -> None:
-    """μ_pose ← exp(δ_p^) μ_pose;  m ← m + δ_m  (the report's split of K (z − ẑ))."""
+    """μ_pose ← exp(δ_p^) μ_pose;  b̂ ← b̂ + δ_b (IMU-error state);  m ← m + δ_m  (the
+    report's split of K (z − ẑ))."""
     state.imu_T_world = se3_exp(dx[:POSE_DIM]) @ state.imu_T_world
+    c = state.core_dim
+    if c > POSE_DIM:
+        state.imu_bias = state.imu_bias + dx[POSE_DIM:c]
     if state.n_landmarks:
-        d_lm = dx[POSE_DIM:].reshape(state.n_landmarks, state.lm_dim)
+        d_lm = dx[c:].reshape(state.n_landmarks, state.lm_dim)
         state.lm_mean = state.lm_mean + d_lm[:, :3]
         if state.lm_dim == 6:
             state.v_lm_in_world = state.v_lm_in_world + d_lm[:, 3:]
@@ -368,7 +377,7 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
         x_{i+1} = x₀ ⊞ K_i (z − h(x_i) − H_i (x₀ ⊟ x_i)),   Σ = Σ₀ − K_i S_i K_iᵀ
 
     (x₀ ⊟ x_i: log(μ₀ μ_i⁻¹) for the pose — the left perturbation at μ_i — and m₀ − m_i
-    for the landmarks; H_i OC-projected with ``N_pose`` when given). ``iterations`` = 1 is
+    for the landmarks; the IMU-error state has zero columns in H, so b̂₀ − b̂_i adds nothing; H_i OC-projected with ``N_pose`` when given). ``iterations`` = 1 is
     the EKF update. ``update``: the update function (default :func:`slam_update`).
 
     ``tolerance`` > 0 makes ``iterations`` a maximum (adaptive iterated update): before
@@ -385,6 +394,7 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     """
     update = update or slam_update
     mu0 = state.imu_T_world.copy()
+    b0 = state.imu_bias.copy()  # the IMU-error state (observations do not depend on it)
     lm0 = state.lm_mean.copy()
     v0 = state.v_lm_in_world.copy()
     factors = {} if tolerance > 0 else None
@@ -408,6 +418,7 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
             if factors and _step_size(state, slots, gain_times(factors, r - r_prev)) < tolerance:
                 break  # converged: the re-linearization would move the estimate by a negligible step
             state.imu_T_world = mu0.copy()
+            state.imu_bias = b0.copy()
             state.lm_mean = lm0.copy()
             state.v_lm_in_world = v0.copy()
             if P0 is None:
@@ -568,7 +579,7 @@ def slam_initialize_landmarks(state: SlamState, model: StereoModel, ids: np.ndar
         G_pose = np.concatenate([G_pose, np.zeros_like(G_pose)], axis=1)
     Gp = G_pose.reshape(d * k, POSE_DIM)
     n = state.dim
-    cross = Gp @ state.cov[:POSE_DIM, :n]  # Σ_m,x = G_p Σ_p,x
+    cross = Gp @ state.cov[:POSE_DIM, :n]  # Σ_m,x = G_p Σ_p,x (x: pose, IMU-error state, landmarks)
     new = Gp @ state.pose_cov @ Gp.T  # G_p Σ_pp G_pᵀ
     pix_cov = G_pix @ V @ np.swapaxes(G_pix, 1, 2)  # G_z V G_zᵀ per landmark
     for i in range(k):

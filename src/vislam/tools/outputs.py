@@ -340,7 +340,8 @@ def build_summary(result: RunResult, *, dataset: Mapping[str, Any], duration_s: 
     ``start_time``, an epoch time — the process start when known — to now),
     ``duration_s`` (of the recording), ``real_time_factor`` (filter_seconds / duration of
     the frames processed; < 1 is faster than real time), ``partial``, ``error``,
-    ``outputs`` and the entries of ``extra``. Non-finite numbers become null on writing.
+    ``outputs``, ``imu_bias`` (mean, RMS and final b̂ of the SLAM filter's IMU-error state,
+    when on) and the entries of ``extra``. Non-finite numbers become null on writing.
     """
     from vislam import __version__
 
@@ -359,6 +360,11 @@ def build_summary(result: RunResult, *, dataset: Mapping[str, Any], duration_s: 
     s["partial"] = bool(result.partial)
     s["error"] = result.error
     s["outputs"] = list(outputs)
+    bias = result.extra.get("imu_bias") if result.extra else None
+    if bias is not None and len(bias):  # the SLAM filter's IMU-error state (b_v m/s, b_ω rad/s)
+        b = np.asarray(bias)
+        s["imu_bias"] = {"mean": b.mean(axis=0).tolist(), "rms": np.sqrt((b * b).mean(axis=0)).tolist(),
+                         "final": b[-1].tolist()}
     if extra:
         s.update(extra)
     return s
