@@ -95,14 +95,19 @@ def drive():
     return simulate_drive(SimulationOptions(seed=2, n_frames=300, velocity_noise_mps=0.05, angular_noise_radps=0.001))
 
 
+@pytest.fixture(scope="module")
+def short_drive():
+    return simulate_drive(SimulationOptions(seed=2, n_frames=120, velocity_noise_mps=0.05, angular_noise_radps=0.001))
+
+
 NOISE = dict(velocity_noise_mps=0.05, angular_noise_radps=0.001)
 
 
-def test_off_is_the_filter_without_the_state(drive):
+def test_off_is_the_filter_without_the_state(short_drive):
     """Both σ_b 0 (whatever T_c): exactly the filter without the option; a tiny σ_b runs
     the 12-row core (landmarks at core_dim, bias rows in every update) and agrees with it
     to rounding."""
-    short = drive.sequence
+    short = short_drive.sequence
     ref = vislam.run(short, "slam", FilterOptions(**NOISE))
     off = vislam.run(short, "slam", FilterOptions(**NOISE, imu_bias_sigma_mps=0.0, imu_bias_sigma_radps=0.0,
                                                   imu_bias_time_constant_s=17.0))
@@ -160,11 +165,12 @@ def test_a_constant_bias_is_recovered_and_lowers_the_ate(drive):
 @pytest.mark.parametrize("extra", [dict(ekf="standard"), dict(landmark_parametrization="cartesian"),
                                    dict(landmark_motion=True), dict(stalled_tracks="keep")],
                          ids=["standard", "cartesian", "motion", "no-remap"])
-def test_bias_state_in_the_other_variants(drive, extra):
+def test_bias_state_in_the_other_variants(short_drive, extra):
     """The variants that share the code path — standard EKF, Cartesian landmarks, the
     landmark motion model (lm_dim 6), no stall buffer — on a clean drive (no injected
     bias): the trajectory stays close to the truth and b̂ near zero; the result holds b̂
     per frame."""
+    drive = short_drive
     r = vislam.run(drive.sequence, "slam", FilterOptions(**NOISE, imu_bias_sigma_mps=0.3,
                                                          imu_bias_sigma_radps=0.003, **extra))
     assert not r.partial
