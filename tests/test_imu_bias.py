@@ -230,3 +230,18 @@ def test_run_flags_set_the_bias_options():
         parser.parse_args(["--imu-bias-sigma", "0.3"])
     with pytest.raises(ConfigError, match="--imu-bias-time-constant"):
         options_from_args(parser.parse_args(["--imu-bias-time-constant", "0"]))
+
+
+@pytest.mark.parametrize("mode", ["localization", "mapping", "smoother"])
+def test_bias_flags_outside_slam_are_one_line_and_exit_2(short_drive, tmp_path, capsys, mode):
+    """The IMU-error state is SLAM's: its flags with another mode are refused, not ignored."""
+    from vislam.cli import main
+    from vislam.tools.dataset_io import save_sequence
+
+    data = tmp_path / "d.npz"
+    save_sequence(short_drive.sequence, data)
+    out = tmp_path / "out"
+    assert main(["run", str(data), "--mode", mode, "--imu-bias-sigma", "0.3,0.003", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--imu-bias-sigma is only used by --mode slam" in err
+    assert not out.exists()

@@ -404,6 +404,10 @@ def run(args) -> int:
         raise ConfigError(f"--poses is only used by --mode mapping (got --mode {args.mode})")
     if args.refine and args.mode != "smoother":
         raise ConfigError(f"--refine is only used by --mode smoother (got --mode {args.mode})")
+    for flag, value in (("--imu-bias-sigma", args.imu_bias_sigma),
+                        ("--imu-bias-time-constant", args.imu_bias_time_constant)):
+        if value is not None and args.mode != "slam":
+            raise ConfigError(f"{flag} is only used by --mode slam (got --mode {args.mode})")
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     data = Path(args.data)
