@@ -377,8 +377,9 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
         x_{i+1} = x₀ ⊞ K_i (z − h(x_i) − H_i (x₀ ⊟ x_i)),   Σ = Σ₀ − K_i S_i K_iᵀ
 
     (x₀ ⊟ x_i: log(μ₀ μ_i⁻¹) for the pose — the left perturbation at μ_i — and m₀ − m_i
-    for the landmarks; the IMU-error state has zero columns in H, so b̂₀ − b̂_i adds nothing; H_i OC-projected with ``N_pose`` when given). ``iterations`` = 1 is
-    the EKF update. ``update``: the update function (default :func:`slam_update`).
+    for the landmarks; the IMU-error state has zero columns in H, so b̂₀ − b̂_i adds
+    nothing; H_i OC-projected with ``N_pose`` when given). ``iterations`` = 1 is the EKF
+    update. ``update``: the update function (default :func:`slam_update`).
 
     ``tolerance`` > 0 makes ``iterations`` a maximum (adaptive iterated update): before
     each re-linearized update, the step it would take is predicted to first order with
@@ -387,7 +388,11 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     unchanged), and the iterations stop when that step is below ``tolerance`` standard
     deviations (of the pose and of every observed landmark, marginally, under the
     current covariance) — the linearization at x_i then gives nothing new. A frame whose
-    prior is narrow against the pixel noise costs one update and one prediction.
+    prior is narrow against the pixel noise costs one update and one prediction. They also
+    stop when that step is larger than the step before (the first: x₁ − x₀ = K₀ r₀, in the
+    same metric): Gauss-Newton that does not contract is moving away, so the last
+    iterate is kept (with the IMU-error state and two landmarks in view it drove b̂ to
+    14 σ; on the shared files with the defaults it never fires).
     ``counts``: a list that receives the number of updates done. ``first``: (r, H_pose,
     H_lm) of these observations at the prior, when the caller has them already.
     Returns the total pose correction ε, μ = exp(ε) μ₀.
@@ -402,6 +407,7 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     # iterating, Σ₀ = Σ + Bᵀ B, so that a frame that needs one update copies nothing
     P0 = state.cov.copy() if factors is None else None
     r_prev = None
+    prev_step = None
     done = 0
     for i in range(max(int(iterations), 1)):
         if i == 0 and first is not None:
@@ -415,8 +421,15 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
             if Hl.shape[2] == 6:
                 d = np.concatenate([d, v0[slots] - state.v_lm_in_world[slots]], axis=1)
             r = r - Hp @ se3_log(mu0 @ se3_inverse(state.imu_T_world)) - np.einsum("kij,kj->ki", Hl, d)
-            if factors and _step_size(state, slots, gain_times(factors, r - r_prev)) < tolerance:
-                break  # converged: the re-linearization would move the estimate by a negligible step
+            if factors:
+                step = _step_size(state, slots, gain_times(factors, r - r_prev))
+                if step < tolerance:
+                    break  # converged: the re-linearization would move the estimate by a negligible step
+                if prev_step is None:  # the size of the step already taken, x_1 − x_0 = K_0 r_0
+                    prev_step = _step_size(state, slots, gain_times(factors, r_prev))
+                if step > prev_step:
+                    break  # not contracting: Gauss-Newton would move away; keep the last iterate
+                prev_step = step
             state.imu_T_world = mu0.copy()
             state.imu_bias = b0.copy()
             state.lm_mean = lm0.copy()
