@@ -50,12 +50,17 @@ FLAG_FIELDS = {
 }
 
 
+def _comma_numbers(text: str) -> tuple[float, ...]:
+    """The numbers of "A,B,...", or () when one is not a number."""
+    try:
+        return tuple(float(p) for p in str(text).split(","))
+    except ValueError:
+        return ()
+
+
 def _bias_sigmas(text: str) -> tuple[float, float]:
     """``--imu-bias-sigma MPS,RADPS``: the two stationary σ of the IMU-error state."""
-    try:
-        values = tuple(float(p) for p in str(text).split(","))
-    except ValueError:
-        values = ()
+    values = _comma_numbers(text)
     if len(values) != 2 or not all(math.isfinite(v) and v >= 0 for v in values):
         raise argparse.ArgumentTypeError(f"expected two numbers >= 0 MPS,RADPS (e.g. 0.3,0.003), got {text!r}")
     return values
@@ -228,10 +233,7 @@ NOISE_FLAGS = {
 
 
 def _vector3(text: str, flag: str) -> tuple[float, float, float]:
-    try:
-        values = tuple(float(p) for p in str(text).split(","))
-    except ValueError:
-        values = ()
+    values = _comma_numbers(text)
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise ConfigError(f"{flag}: expected three finite numbers X,Y,Z (e.g. 0.1,0,0), got {text!r}")
     return values

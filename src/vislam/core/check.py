@@ -448,6 +448,13 @@ def _scaled(u: np.ndarray, factor: float) -> np.ndarray:
     return out
 
 
+def _debiased(u: np.ndarray, gyro_bias) -> np.ndarray:
+    """The (T, 6) twists with ``gyro_bias`` (3,) subtracted from the angular velocities (a copy)."""
+    out = u.copy()
+    out[:, 3:] -= gyro_bias
+    return out
+
+
 def _fit_rotation_and_bias(pairs: _TrackPairs, timestamps, u, cam_T_imu, shift: int, scale: float,
                            phi0: np.ndarray, fit_bias: bool = True, fit_scale: bool = False,
                            log_scale0: float = 0.0):
@@ -762,8 +769,7 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
     # the reprojection analyses see the velocities without the bias found, in the body
     # frame (levelled velocities turned by the grade they show, see level_velocities_to_body)
     if "gyro_bias_radps" in suggested:
-        u = u.copy()
-        u[:, 3:] -= np.asarray(suggested["gyro_bias_radps"])
+        u = _debiased(u, np.asarray(suggested["gyro_bias_radps"]))
     if base.velocity_frame == "level":
         u = level_velocities_to_body(u)
 
@@ -840,9 +846,8 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
 
         # association: the shift with the smallest cost at that rotation and bias
         def shifted_cost(s: int, phi: np.ndarray, b: np.ndarray) -> np.ndarray:
-            ub = u.copy()
-            ub[:, 3:] -= b
-            return _cauchy_cost(all_pairs.residuals(all_pairs.relative_imu(ts, ub, s), _turned(C0, phi)), scale)
+            rel = all_pairs.relative_imu(ts, _debiased(u, b), s)
+            return _cauchy_cost(all_pairs.residuals(rel, _turned(C0, phi)), scale)
 
         shift_costs = {s: shifted_cost(s, x[:3], x[3:]) for s in (-1, 0, 1, 2, 3)}
         totals = {s: float(np.sum(c)) for s, c in shift_costs.items()}
@@ -892,10 +897,8 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
         if not math.isfinite(rotation_z2):  # no usable covariance: the floor alone
             rotation_z2 = float(phi @ phi) / floor**2
         est["imu_camera_rotation_chi2"] = rotation_z2
-        ub = u.copy()
-        ub[:, 3:] -= x[3:]
-        fit_median = float(np.median(_left_distance(pairs.residuals(pairs.relative_imu(ts, ub, shift),
-                                                                    _turned(C0, phi)))))
+        rel_fit = pairs.relative_imu(ts, _debiased(u, x[3:]), shift)
+        fit_median = float(np.median(_left_distance(pairs.residuals(rel_fit, _turned(C0, phi)))))
         est["reprojection_best_fit_median_px"] = fit_median
         reliable = fit_median <= opts.max_fit_median_px
         est["conventions_checked"] = reliable
@@ -1098,8 +1101,7 @@ def _fourier_shift(u: np.ndarray, shift_samples: float) -> np.ndarray:
 
 def _time_offset(pairs: _TrackPairs, ts, u, C0, x, shift: int, dt: float, scale: float, rng):
     """Time offset (s) minimizing the reprojection cost, its bootstrap standard error and the grid."""
-    ub = u.copy()
-    ub[:, 3:] -= x[3:]
+    ub = _debiased(u, x[3:])
     C = _turned(C0, x[:3])
     grid = np.linspace(-dt, dt, 11)
     _, inv = np.unique(pairs.landmark, return_inverse=True)

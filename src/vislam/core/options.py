@@ -72,6 +72,11 @@ def _chi2_4_quantile(p: float | None) -> float:
 ROBUST_PRESET = {"drift_test_probability": 0.9, "probation_frames": 2}
 
 
+def _axis_array(value) -> np.ndarray:
+    """A PER_AXIS_FIELDS value (a number or three) as a (3,) array (a copy)."""
+    return np.broadcast_to(np.asarray(value, dtype=np.float64), (3,)).copy()
+
+
 @dataclass(frozen=True)
 class FilterOptions:
     """Noise, initialization and robustness parameters (units in each name)."""
@@ -429,8 +434,8 @@ class FilterOptions:
                     raise ConfigError(f"{f.name} must be >= 0, got {value!r}")
         if self.pixel_noise_px <= 0:
             raise ConfigError("pixel_noise_px must be > 0 (the update needs a positive-definite V)")
-        for name in ("imu_bias_time_constant_s", "smoother_window_s", "smoother_kernel_scale", "smoother_landmark_prior_m", "refine_kernel_scale",
-                     "refine_outlier_px"):
+        for name in ("imu_bias_time_constant_s", "smoother_window_s", "smoother_kernel_scale",
+                     "smoother_landmark_prior_m", "refine_kernel_scale", "refine_outlier_px"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")
         if self.min_depth_m >= self.max_depth_m:
@@ -455,18 +460,17 @@ class FilterOptions:
     @property
     def imu_bias_sigma(self) -> np.ndarray:
         """(6,) stationary σ of b = (b_v, b_ω) (m/s ×3, rad/s ×3)."""
-        return np.concatenate([np.broadcast_to(np.asarray(self.imu_bias_sigma_mps, dtype=np.float64), (3,)),
-                               np.broadcast_to(np.asarray(self.imu_bias_sigma_radps, dtype=np.float64), (3,))])
+        return np.concatenate([_axis_array(self.imu_bias_sigma_mps), _axis_array(self.imu_bias_sigma_radps)])
 
     @property
     def velocity_noise_per_axis(self) -> np.ndarray:
         """(3,) σ_v per IMU axis (m/s)."""
-        return np.broadcast_to(np.asarray(self.velocity_noise_mps, dtype=np.float64), (3,)).copy()
+        return _axis_array(self.velocity_noise_mps)
 
     @property
     def angular_noise_per_axis(self) -> np.ndarray:
         """(3,) σ_ω per IMU axis (rad/s)."""
-        return np.broadcast_to(np.asarray(self.angular_noise_radps, dtype=np.float64), (3,)).copy()
+        return _axis_array(self.angular_noise_radps)
 
     @property
     def has_data_corrections(self) -> bool:

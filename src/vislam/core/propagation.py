@@ -220,7 +220,7 @@ def predict_state(state, tau: float, u: np.ndarray, W: np.ndarray, oc_correction
     with the IMU-error state, ``bias`` its model and ``D`` of :func:`bias_twist_jacobian`
     at the prior, the whole core block; ``u`` is then the body twist of the corrected
     sample u_meas − b̂)."""
-    if state.core_dim > 6:
+    if state.has_bias:
         _predict_state_with_bias(state, tau, u, W, oc_correction, du, bias, D)
         return
     mean, pose_cov, F = predict_pose(state.imu_T_world, state.pose_cov, tau, u, W, oc_correction, du)

@@ -258,7 +258,7 @@ def _apply_correction(state: SlamState, dx: np.ndarray) -> None:
     report's split of K (z − ẑ))."""
     state.imu_T_world = se3_exp(dx[:POSE_DIM]) @ state.imu_T_world
     c = state.core_dim
-    if c > POSE_DIM:
+    if state.has_bias:
         state.imu_bias = state.imu_bias + dx[POSE_DIM:c]
     if state.n_landmarks:
         d_lm = dx[c:].reshape(state.n_landmarks, state.lm_dim)
