@@ -32,6 +32,8 @@ _FLAGS = {
     "time_offset": "time_offset_s",
     "gyro_bias": "gyro_bias_radps",
     "velocity_scale": "velocity_scale",
+    "lever_arm_error": "lever_arm_error_m",
+    "lever_arm_swapped": "lever_arm_swapped",
 }
 
 
@@ -86,6 +88,11 @@ def register(subparsers) -> None:
                         help="constant bias added to the angular velocities (rad/s, IMU axes)")
     faults.add_argument("--velocity-scale", type=float, default=_DEFAULTS.velocity_scale, metavar="F",
                         help="record the linear velocities times F (e.g. 3.6: km/h stored as m/s)")
+    faults.add_argument("--lever-arm-error", type=_three_numbers, default=_DEFAULTS.lever_arm_error_m,
+                        metavar="X,Y,Z", help="record cam_T_imu with this error added to its translation (m, camera "
+                        "axes)")
+    faults.add_argument("--lever-arm-swapped", action="store_true", default=_DEFAULTS.lever_arm_swapped,
+                        help="record imu_T_cam's translation as cam_T_imu's (the KITTI course files' mix-up)")
     parser.set_defaults(func=run)
 
 

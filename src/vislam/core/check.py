@@ -86,8 +86,8 @@ logger = logging.getLogger(__name__)
 
 SEVERITIES = ("OK", "WARN", "ERROR")
 #: Stable codes of the findings, in the order they are reported.
-FINDING_CODES = ("timestamps", "imu-camera-rotation", "velocity-association", "velocity-scale", "time-offset",
-                 "imu-bias", "noise", "pixel-noise", "reprojection", "repeated-observations", "disparity")
+FINDING_CODES = ("timestamps", "imu-camera-rotation", "imu-camera-translation", "velocity-association",
+                 "velocity-scale", "time-offset", "imu-bias", "noise", "pixel-noise", "reprojection", "repeated-observations", "disparity")
 
 
 @dataclass(frozen=True)
@@ -154,6 +154,22 @@ class CheckOptions:
     #: like a rotation error about the forward axis, so the rotation's uncertainty
     #: includes what this much roll would change (``body_roll_sensitivity_deg``). 0: off.
     roll_gradient_prior_deg_per_mps2: float = 0.3
+    #: IMU-camera translation (lever arm): a free estimate further than this (m) from the
+    #: recorded translation, in the plane the data sees (perpendicular to the vehicle's
+    #: yaw axis), and significant at 99 %, is reported. Smaller errors barely move the
+    #: camera: 0.3 m at a yaw rate of 0.3 rad/s is 0.09 m/s.
+    translation_warn_m: float = 0.3
+    #: Systematic uncertainty of the translation estimate (m, per axis of that plane),
+    #: added in quadrature to the statistical one.
+    translation_floor_m: float = 0.1
+    #: With white IMU noise beyond the filter's (finding ``noise``), the velocities enter
+    #: the translation fit averaged over this many seconds (centred): the lever arm is
+    #: seen through the angular rates, and noise in them pulls the estimate (errors in
+    #: variables; on dense 0027 the raw rates prefer the stored translation, their
+    #: 0.9 s average the published one). A ground vehicle's motion is smooth on that scale.
+    translation_smoothing_s: float = 0.9
+    #: At most this many prediction pairs enter the translation fits (a random subset).
+    translation_pairs: int = 15000
     #: Seed of the random subsets and bootstraps.
     seed: int = 0
 
@@ -466,7 +482,6 @@ def _fit_rotation_and_bias(pairs: _TrackPairs, timestamps, u, cam_T_imu, shift: 
     from scipy.optimize import least_squares
 
     n_rb = 6 if fit_bias else 3
-    n_par = n_rb + int(fit_scale)
 
     def fun(x):
         ub = u.copy()
@@ -481,11 +496,24 @@ def _fit_rotation_and_bias(pairs: _TrackPairs, timestamps, u, cam_T_imu, shift: 
     if fit_scale:
         x0, x_scale = np.append(x0, log_scale0), np.append(x_scale, 0.01)
     sol = least_squares(fun, x0, loss="cauchy", f_scale=scale, x_scale=x_scale, diff_step=1e-4, max_nfev=40)
+    r = sol.fun.reshape(-1, 4)
+    cov_fit = _sandwich_covariance(pairs, sol, scale)
+    x = np.zeros(6)
+    x[:n_rb] = sol.x[:n_rb]
+    cov = np.full((6, 6), np.nan)
+    cov[:n_rb, :n_rb] = cov_fit[:n_rb, :n_rb]
+    log_s = (float(sol.x[n_rb]), float(cov_fit[n_rb, n_rb])) if fit_scale else (float(log_scale0), float("nan"))
+    return x, cov, float(np.sum(_cauchy_cost(r, scale))), log_s
+
+
+def _sandwich_covariance(pairs: _TrackPairs, sol, scale: float) -> np.ndarray:
+    """Covariance of a robust (Cauchy, ``scale`` px) least-squares fit over ``pairs``
+    (``sol`` from scipy's least_squares, residuals (P, 4) raveled): a sandwich with the
+    IRLS weights at the solution, the scores summed over blocks of frames first, because
+    predictions that start in nearby frames share the same velocity samples, so their
+    errors are correlated. NaN where the information matrix is singular."""
     J = sol.jac
     r = sol.fun.reshape(-1, 4)
-    # Sandwich covariance with the robust (IRLS) weights of the Cauchy loss at the
-    # solution, the scores summed over blocks of frames first: predictions that start in
-    # nearby frames share the same velocity samples, so their errors are correlated.
     w = np.repeat(1.0 / (1.0 + (np.linalg.norm(r, axis=1) / scale) ** 2), 4)
     H = J.T @ (w[:, None] * J)
     scores = J * (w * sol.fun)[:, None]  # (4P, n_par)
@@ -495,15 +523,9 @@ def _fit_rotation_and_bias(pairs: _TrackPairs, timestamps, u, cam_T_imu, shift: 
     np.add.at(g, inv, scores)
     try:
         Hinv = np.linalg.inv(H)
-        cov_fit = Hinv @ (g.T @ g) @ Hinv
+        return Hinv @ (g.T @ g) @ Hinv
     except np.linalg.LinAlgError:
-        cov_fit = np.full((n_par, n_par), np.nan)
-    x = np.zeros(6)
-    x[:n_rb] = sol.x[:n_rb]
-    cov = np.full((6, 6), np.nan)
-    cov[:n_rb, :n_rb] = cov_fit[:n_rb, :n_rb]
-    log_s = (float(sol.x[n_rb]), float(cov_fit[n_rb, n_rb])) if fit_scale else (float(log_scale0), float("nan"))
-    return x, cov, float(np.sum(_cauchy_cost(r, scale))), log_s
+        return np.full((J.shape[1], J.shape[1]), np.nan)
 
 
 def _landmark_medians(landmark: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -539,6 +561,136 @@ def _moving_landmarks(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi: np.ndar
     out.update(landmarks=int(bad.sum()), predictions_share=float(np.mean(bad[inv])),
                landmark_ids=lms[bad].tolist())
     return out
+
+
+def _with_translation(cam_T_imu: np.ndarray, t_cam: np.ndarray) -> np.ndarray:
+    """cam_T_imu with its translation replaced by ``t_cam`` (camera frame, m; a copy)."""
+    C = np.array(cam_T_imu, dtype=np.float64)
+    C[:3, 3] = t_cam
+    return C
+
+
+def swapped_translation(cam_T_imu: np.ndarray) -> np.ndarray:
+    """The translation cam_T_imu has when its stored translation is really imu_T_cam's
+    (the camera's position in the IMU frame, the mix-up of the KITTI course files):
+    ``−R t`` with R, t the stored rotation block and translation."""
+    C = np.asarray(cam_T_imu, dtype=np.float64)
+    return -C[:3, :3] @ C[:3, 3]
+
+
+def _smoothed(u: np.ndarray, k: int) -> np.ndarray:
+    """The (T, 6) twists averaged over ``k`` samples (centred, ends held)."""
+    if k <= 1:
+        return u
+    from scipy.ndimage import uniform_filter1d
+
+    return uniform_filter1d(u, size=k, axis=0, mode="nearest")
+
+
+def _fit_translation(pairs: _TrackPairs, rel: np.ndarray, cam_T_imu: np.ndarray, phi0: np.ndarray,
+                     plane: np.ndarray | None, scale: float):
+    """Robust fit of the camera-frame rotation correction φ with (``plane`` (3, 2), an
+    orthonormal basis) a translation change δ in that plane: cam_T_imu's translation
+    becomes t + plane δ. Returns (φ, δ, cov of δ (2, 2), per-pair Cauchy costs); without
+    a plane only φ is fitted (δ and its covariance empty)."""
+    from scipy.optimize import least_squares
+
+    t0 = np.asarray(cam_T_imu, dtype=np.float64)[:3, 3]
+    n_d = 0 if plane is None else plane.shape[1]
+
+    def candidate(x):
+        C = _turned(cam_T_imu, x[:3])
+        if n_d:
+            C[:3, 3] = t0 + plane @ x[3:]
+        return C
+
+    sol = least_squares(lambda x: pairs.residuals(rel, candidate(x)).ravel(), np.concatenate([phi0, np.zeros(n_d)]),
+                        loss="cauchy", f_scale=scale, x_scale=np.array([0.01] * 3 + [0.1] * n_d), diff_step=1e-4,
+                        max_nfev=40)
+    cost = _cauchy_cost(sol.fun.reshape(-1, 4), scale)
+    cov = _sandwich_covariance(pairs, sol, scale)[3:, 3:] if n_d else np.zeros((0, 0))
+    return sol.x[:3], sol.x[3:], cov, cost
+
+
+def _imu_camera_translation(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi, gyro_bias, shift: int, scale: float,
+                            smoothing_frames: int, opts: CheckOptions) -> tuple[dict[str, Any], Finding, Any]:
+    """Hand-eye estimate of cam_T_imu's translation through the images (see
+    :func:`check_sequence`). Returns (estimates, the finding, the suggested cam_T_imu as
+    4 rows or None)."""
+    C0 = np.asarray(cam_T_imu, dtype=np.float64)
+    t_stored = C0[:3, 3].copy()
+    t_swapped = swapped_translation(C0)
+    ub = _smoothed(_debiased(u, gyro_bias), smoothing_frames)
+    est: dict[str, Any] = {"imu_camera_translation_m": None, "imu_camera_translation_m_se": None,
+                           "imu_camera_translation_stored_m": t_stored.tolist(),
+                           "imu_camera_translation_swapped_m": t_swapped.tolist(),
+                           "imu_camera_translation_smoothing_frames": int(smoothing_frames)}
+    axes = vehicle_axes(ub)
+    if axes is None:
+        return est, Finding("imu-camera-translation", "OK",
+                            "the recording barely moves or turns: the IMU-camera translation is not observable "
+                            "(it is seen through turns); the recorded one is assumed"), None
+    # The translation is seen through rotation, (R_rel − I) t: a ground vehicle turns
+    # about its yaw axis only, so the component along that axis is not observed.
+    up_cam = _turned(C0, phi)[:3, :3] @ axes[1]
+    e1 = np.cross(up_cam, [0.0, 0.0, 1.0]) if abs(up_cam[2]) < 0.9 else np.cross(up_cam, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    plane = np.column_stack([e1, np.cross(up_cam, e1)])
+    rel = pairs.relative_imu(timestamps, ub, shift)
+    _, delta, cov, cost_free = _fit_translation(pairs, rel, C0, phi, plane, scale)
+    t_free = t_stored + plane @ delta
+    cov_p = cov + opts.translation_floor_m ** 2 * np.eye(2)
+    se3d = np.sqrt(np.clip(np.diag(plane @ cov_p @ plane.T), 0, None))
+    # the two recorded conventions, each with its rotation refitted
+    _, _, _, cost_stored = _fit_translation(pairs, rel, C0, phi, None, scale)
+    _, _, _, cost_swapped = _fit_translation(pairs, rel, _with_translation(C0, t_swapped), phi, None, scale)
+    z_swap = _paired_z(cost_stored - cost_swapped, pairs.landmark)  # > 0: the swapped one fits better
+
+    def off(t):  # (distance in the plane, chi-square 2 dof) of the free estimate from t
+        d = plane.T @ (t_free - t)
+        try:
+            return float(np.linalg.norm(d)), float(d @ np.linalg.solve(cov_p, d))
+        except np.linalg.LinAlgError:
+            return float(np.linalg.norm(d)), float("nan")
+
+    d_stored, chi_stored = off(t_stored)
+    d_swapped, _ = off(t_swapped)
+    # the unobserved component: that of the recorded convention nearer in the plane
+    t_axis = t_swapped if d_swapped < d_stored else t_stored
+    t_free = t_free + up_cam * (up_cam @ (t_axis - t_free))
+    est.update({"imu_camera_translation_free_m": t_free.tolist(), "imu_camera_translation_free_m_se": se3d.tolist(),
+                "imu_camera_translation_unobserved_axis": up_cam.tolist(),
+                "imu_camera_translation_free_from_stored_m": d_stored,
+                "imu_camera_translation_free_from_swapped_m": d_swapped,
+                "imu_camera_translation_chi2": chi_stored, "imu_camera_translation_swapped_z": z_swap,
+                "imu_camera_translation_costs": {"stored": float(np.sum(cost_stored)),
+                                                 "swapped": float(np.sum(cost_swapped)),
+                                                 "free": float(np.sum(cost_free))}})
+    se_txt = f"± {_fmt_vec(se3d, '.2f')} m, the component along the yaw axis {_fmt_vec(up_cam, '.2f')} unobserved"
+    if d_stored <= opts.translation_warn_m or not chi_stored > _CHI2_2DOF_99:
+        est["imu_camera_translation_m"] = t_stored.tolist()
+        est["imu_camera_translation_m_se"] = se3d.tolist()
+        return est, Finding("imu-camera-translation", "OK",
+                            f"the tracks support the recorded IMU-camera translation {_fmt_vec(t_stored, '.3f')} m "
+                            f"(free estimate {_fmt_vec(t_free, '.2f')} {se_txt}); nothing to do"), None
+    if z_swap >= 3.0 and d_swapped < d_stored:
+        est["imu_camera_translation_m"] = t_swapped.tolist()
+        est["imu_camera_translation_m_se"] = se3d.tolist()
+        return est, Finding(
+            "imu-camera-translation", "ERROR",
+            f"cam_T_imu's translation {_fmt_vec(t_stored, '.3f')} m is imu_T_cam's (the camera's position in the IMU "
+            f"frame): the tracks fit cam_T_imu's translation {_fmt_vec(t_swapped, '.3f')} m better (z = {z_swap:.1f}), "
+            f"and their free estimate {_fmt_vec(t_free, '.2f')} {se_txt} lies {d_swapped:.2f} m from it and "
+            f"{d_stored:.2f} m from the recorded one; run with the suggested cam_T_imu"), \
+            [list(map(float, row)) for row in _with_translation(C0, t_swapped)]
+    t_sug = t_free
+    est["imu_camera_translation_m"] = t_sug.tolist()
+    est["imu_camera_translation_m_se"] = se3d.tolist()
+    return est, Finding(
+        "imu-camera-translation", "WARN",
+        f"cam_T_imu's translation is off by {d_stored:.2f} m: the tracks support {_fmt_vec(t_sug, '.2f')} {se_txt} "
+        f"(recorded {_fmt_vec(t_stored, '.3f')} m); run with the suggested cam_T_imu"), \
+        [list(map(float, row)) for row in _with_translation(C0, t_sug)]
 
 
 #: Units timestamps may have been recorded in by mistake: (seconds per unit, name).
@@ -996,9 +1148,19 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
                 findings.append(Finding("time-offset", "OK",
                                         f"no camera-IMU time offset beyond {opts.time_offset_warn_s * 1000:.0f} ms "
                                         f"(estimate {frac * 1000:.0f}{ts_txt} ms); nothing to do"))
+        if reliable:
+            k = int(round(opts.translation_smoothing_s / dt)) if noisy and dt > 0 else 1
+            t_est, t_finding, t_cam_T_imu = _imu_camera_translation(
+                pairs.subset(opts.translation_pairs, rng), ts, u, C0, phi, bias, shift, scale, max(1, k) | 1, opts)
+            est.update(t_est)
+            findings.append(t_finding)
+            if t_cam_T_imu is not None:
+                suggested["cam_T_imu"] = t_cam_T_imu
     else:
-        notes.append(f"only {pairs.n_pairs} track predictions: rotation, association and time offset not checked")
-        for code in ("imu-camera-rotation", "velocity-association", "velocity-scale", "time-offset"):
+        notes.append(f"only {pairs.n_pairs} track predictions: rotation, translation, association and time offset "
+                     f"not checked")
+        for code in ("imu-camera-rotation", "imu-camera-translation", "velocity-association", "velocity-scale",
+                     "time-offset"):
             findings.append(Finding(code, "WARN", f"not enough in-sync stereo tracks ({pairs.n_pairs} predictions) "
                                                   f"to check this; the recording's conventions are assumed"))
         est["imu_camera_rotation_error_deg"] = None
@@ -1027,8 +1189,8 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
         est["reprojection_after_px"] = _percentiles(_left_distance(r_after))
         b, a = est["reprojection_before_px"], est["reprojection_after_px"]
         sev = "OK" if a["median"] <= opts.max_fit_median_px else "WARN"
-        changed = any(k in suggested for k in ("imu_camera_rotation_correction_deg", "velocity_association",
-                                               "time_offset_s", "gyro_bias_radps"))
+        changed = any(k in suggested for k in ("imu_camera_rotation_correction_deg", "cam_T_imu",
+                                               "velocity_association", "time_offset_s", "gyro_bias_radps"))
         text = (f"tracks reproject under dead-reckoned poses (1-{opts.window} frames ahead) with median "
                 f"{b['median']:.2f} px, p90 {b['p90']:.2f} px")
         moving = est.get("moving_landmarks") or {}
@@ -1071,6 +1233,8 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
 
 #: chi-square (3 dof) 99 % quantile: the significance test of the rotation error.
 _CHI2_3DOF_99 = 11.34
+#: chi-square (2 dof) 99 % quantile: the significance test of the translation error.
+_CHI2_2DOF_99 = 9.21
 
 
 def _paired_z(diff: np.ndarray, landmark: np.ndarray) -> float:

@@ -100,7 +100,10 @@ KITTI_BASELINE_M = 0.5371506532679237
 
 
 def _rigid_cam_T_imu() -> np.ndarray:
-    """cam_T_imu of sparse/0027.npz with its rotation block re-orthonormalized (SVD)."""
+    """KITTI's published cam_T_imu (2011_09_30): the rotation block of sparse/0027.npz
+    re-orthonormalized (SVD) and the published translation. The course files store
+    imu_T_cam's translation instead (the camera's position in the IMU frame, see
+    ../shared/data/README.md); cam_T_imu's is −R times it."""
     T = np.array(
         [
             [-1.08863514e-03, -9.99976347e-01, 6.78718180e-03, 1.14389871e00],
@@ -114,11 +117,13 @@ def _rigid_cam_T_imu() -> np.ndarray:
     if np.linalg.det(R) < 0:  # pragma: no cover - the recorded matrix is a rotation
         R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
     T[:3, :3] = R
+    T[:3, 3] = -R @ T[:3, 3]  # the stored vector is imu_T_cam's translation
     T.setflags(write=False)
     return T
 
 
-#: Maps IMU coordinates into the left camera frame (real data's, exactly rigid).
+#: Maps IMU coordinates into the left camera frame (KITTI's published calibration,
+#: exactly rigid: the IMU 1.14 m behind, 0.73 m below and 0.32 m left of the camera).
 KITTI_CAM_T_IMU = _rigid_cam_T_imu()
 
 #: Names of the landmark kinds; ``SimulatedDrive.landmark_kind`` indexes this tuple.
@@ -213,6 +218,11 @@ class SimulationOptions:
     #: Image height (px); vL, vR must lie in [0, height - 1].
     image_height_px: int = 376
 
+    #: The rig's true cam_T_imu translation (m, camera frame: the IMU's position in the
+    #: left camera frame), or None for KITTI's published one (see KITTI_CAM_T_IMU). The
+    #: rotation is KITTI's.
+    cam_T_imu_translation_m: tuple[float, float, float] | None = None
+
     # --- tracker artifacts --------------------------------------------------------------
     #: Stalled tracks as in the KITTI feature files (0 = off). With N > 0, frames N, 2N,
     #: 3N, ... are re-detection frames: there every continuing track repeats its previous
@@ -229,6 +239,12 @@ class SimulationOptions:
     #: The recorded cam_T_imu's rotation block is exp(φ) R (φ this rotation vector in
     #: degrees, camera axes); its translation is kept. The images follow the true one.
     extrinsic_error_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: The recorded cam_T_imu's translation is the true one plus this (m, camera axes):
+    #: a wrong lever arm.
+    lever_arm_error_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: The recorded cam_T_imu's translation is imu_T_cam's — the camera's position in the
+    #: IMU frame (−Rᵀ t) — as in the KITTI course files (see ../shared/data/README.md).
+    lever_arm_swapped: bool = False
     #: Recorded sample k is the true sample k + shift (clamped at the ends): +1 makes the
     #: sample of frame k describe the interval k -> k+1 ("current" association).
     velocity_shift: int = 0
@@ -259,6 +275,15 @@ class SimulationOptions:
                         or not math.isfinite(value) or not 0.01 <= value <= 100:
                     raise ConfigError(f"velocity_scale must be a number in [0.01, 100], got {value!r}")
                 object.__setattr__(self, f.name, float(value))
+                continue
+            if f.name == "lever_arm_swapped":
+                if not isinstance(value, (bool, np.bool_)):
+                    raise ConfigError(f"lever_arm_swapped must be true or false, got {value!r}")
+                object.__setattr__(self, f.name, bool(value))
+                continue
+            if f.name == "cam_T_imu_translation_m":
+                if value is not None:
+                    object.__setattr__(self, f.name, _three_finite(f.name, value))
                 continue
             if f.name == "velocity_frame":
                 if value not in ("body", "level"):
@@ -336,7 +361,8 @@ class SimulationOptions:
     @property
     def has_recording_faults(self) -> bool:
         return (any(self.imu_frame_rotation_deg) or any(self.extrinsic_error_deg) or self.velocity_shift != 0
-                or self.time_offset_s != 0 or any(self.gyro_bias_radps) or self.velocity_scale != 1.0)
+                or self.time_offset_s != 0 or any(self.gyro_bias_radps) or self.velocity_scale != 1.0
+                or any(self.lever_arm_error_m) or self.lever_arm_swapped)
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any], source: str = "options") -> "SimulationOptions":
@@ -356,7 +382,7 @@ class SimulationOptions:
         return dataclasses.replace(self, **changes)
 
 
-_FAULT_VECTOR_FIELDS = ("imu_frame_rotation_deg", "extrinsic_error_deg", "gyro_bias_radps")
+_FAULT_VECTOR_FIELDS = ("imu_frame_rotation_deg", "extrinsic_error_deg", "gyro_bias_radps", "lever_arm_error_m")
 
 
 def _three_finite(name: str, value) -> tuple[float, float, float]:
@@ -389,8 +415,9 @@ def _apply_recording_faults(opts: SimulationOptions, timestamps: np.ndarray, mea
     In this order: time offset (the sample stamped t is the signal at t + δ, linear
     interpolation, constant beyond the ends), index shift (sample k is sample k + shift),
     gyro bias (added), velocity scale (linear velocities multiplied), the frame of the
-    velocities (coordinates in the turned frame, ``Rᵀ u``), the extrinsic error (rotation
-    block ``exp(φ) R``).
+    velocities (coordinates in the turned frame, ``Rᵀ u``), the lever-arm faults (the
+    translation swapped for imu_T_cam's, then the error added), the extrinsic error
+    (rotation block ``exp(φ) R``).
     """
     from vislam.core.lie import so3_exp
 
@@ -407,6 +434,9 @@ def _apply_recording_faults(opts: SimulationOptions, timestamps: np.ndarray, mea
         u[:, :3] = u[:, :3] @ R  # rows: (Rᵀ v)ᵀ = vᵀ R
         u[:, 3:] = u[:, 3:] @ R
     recorded = np.array(cam_T_imu, dtype=np.float64)
+    if opts.lever_arm_swapped:  # imu_T_cam's translation stored as cam_T_imu's
+        recorded[:3, 3] = -recorded[:3, :3].T @ recorded[:3, 3]
+    recorded[:3, 3] += np.asarray(opts.lever_arm_error_m)
     if any(opts.extrinsic_error_deg):
         recorded[:3, :3] = so3_exp(np.radians(opts.extrinsic_error_deg)) @ recorded[:3, :3]
     return u, recorded
@@ -1047,6 +1077,9 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
     ego_arc = arc_ext[:T]
 
     cam_T_imu = KITTI_CAM_T_IMU
+    if opts.cam_T_imu_translation_m is not None:
+        cam_T_imu = cam_T_imu.copy()
+        cam_T_imu[:3, 3] = opts.cam_T_imu_translation_m
     cam_T_world = cam_T_imu @ se3_inverse(world_T_imu)
     camera_positions = (world_T_imu @ se3_inverse(cam_T_imu))[:, :3, 3]
 
