@@ -64,4 +64,10 @@ def describe_suggestions(record: Mapping[str, Any] | None) -> str:
     suggested = (record or {}).get("suggested") or {}
     if not suggested:
         return "none (the defaults fit)"
-    return ", ".join(f"{k} {_g(v)}" + (f" {_UNITS[k]}" if k in _UNITS else "") for k, v in suggested.items())
+    return ", ".join(_describe(k, v) for k, v in suggested.items())
+
+
+def _describe(key: str, value) -> str:
+    if key == "cam_T_imu":  # a 4x4: what changes is the lever arm, said by its translation
+        return f"cam_T_imu with translation {_g([float(row[3]) for row in value[:3]])} m"
+    return f"{key} {_g(value)}" + (f" {_UNITS[key]}" if key in _UNITS else "")
