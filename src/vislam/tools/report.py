@@ -627,15 +627,13 @@ def _comparison_task(sequence, ground_truth_path, ground_truth, ground_truth_inf
                      methods=EKF_METHODS) -> Comparison:
     """One comparison of the report, run and written into ``directory`` (a task): the
     options from the dataset's ``check`` record (and ``told``), the check's data
-    corrections applied (the camera ground truth converted with the corrected cam_T_imu)."""
+    corrections applied (the camera ground truth converted with each run's calibration, the
+    corrected cam_T_imu: :func:`vislam.tools.comparison.evaluate_run`)."""
     options = _dataset_options(check, told)
     if options.has_data_corrections:
         from vislam.core.corrections import apply_corrections
 
         sequence = apply_corrections(sequence, options)
-        if ground_truth_path is not None:
-            ground_truth = load_run_ground_truth(ground_truth_path, sequence, "kitti", "cam")
-        dataset = {**dataset, "cam_T_imu": sequence.cam_T_imu.tolist()}
     comparison = run_comparison(sequence, options, noise=noise, ground_truth=ground_truth,
                                 ground_truth_info=ground_truth_info, dataset=dataset, methods=methods, auto=check)
     write_comparison(directory, comparison, start_time=start_time)
