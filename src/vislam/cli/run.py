@@ -378,15 +378,17 @@ def format_evaluation_line(ev: dict) -> str:
     def num(x, spec, unit=""):
         return "n/a" if x is None or not math.isfinite(x) else f"{x:{spec}}{unit}"
 
-    imu = (f"{num(ev.get('ape_rmse_m'), '.3f', ' m')} (SE(3)-aligned RMSE vs ground truth, "
-           f"{ev.get('n_frames_compared')} frames); KITTI {num(ev.get('kitti_t_pct'), '.2f', ' %')}, "
-           f"{num(ev.get('kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}")
-    if ev.get("cam_ape_rmse_m") is None and ev.get("cam_kitti_t_pct") is None:
-        return f"ATE:           {imu}"
-    return (f"ATE, camera:   {num(ev.get('cam_ape_rmse_m'), '.3f', ' m')} (left-camera poses with the calibration "
-            f"used vs the ground truth as it is); KITTI {num(ev.get('cam_kitti_t_pct'), '.2f', ' %')}, "
-            f"{num(ev.get('cam_kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}\n"
-            f"ATE, IMU:      {imu}")
+    if ev.get("cam_ape_rmse_m") is None and ev.get("cam_kitti_t_pct") is None:  # IMU ground truth
+        return (f"ATE:           {num(ev.get('ape_rmse_m'), '.3f', ' m')} (SE(3)-aligned RMSE vs ground truth, "
+                f"{ev.get('n_frames_compared')} frames); KITTI {num(ev.get('kitti_t_pct'), '.2f', ' %')}, "
+                f"{num(ev.get('kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}")
+    return (f"ATE:           camera {num(ev.get('cam_ape_rmse_m'), '.3f', ' m')}, IMU "
+            f"{num(ev.get('ape_rmse_m'), '.3f', ' m')} (SE(3)-aligned RMSE vs ground truth, "
+            f"{ev.get('n_frames_compared')} frames; camera: the left-camera poses with the calibration used vs the "
+            f"ground truth as it is; IMU: vs the ground truth converted with that calibration)\n"
+            f"KITTI:         camera {num(ev.get('cam_kitti_t_pct'), '.2f', ' %')}, "
+            f"{num(ev.get('cam_kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}; IMU "
+            f"{num(ev.get('kitti_t_pct'), '.2f', ' %')}, {num(ev.get('kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}")
 
 
 def _print(text: str) -> None:

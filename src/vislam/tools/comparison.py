@@ -286,6 +286,14 @@ class MethodResult:
         return float(self.evaluation.ape.rmse)
 
     @property
+    def cam_ate_m(self) -> float | None:
+        """Camera-frame ATE (camera ground truth only), else None."""
+        camera = self.evaluation.camera if self.evaluation is not None else None
+        if camera is None or not math.isfinite(camera.ape.rmse):
+            return None
+        return float(camera.ape.rmse)
+
+    @property
     def refine_seconds(self) -> float | None:
         """Time of the batch refinement (refine only), or None."""
         value = (self.result.extra.get("timing") or {}).get("refine_seconds")
@@ -390,6 +398,7 @@ class Comparison:
             "auto": self.auto,
             "methods": {key: m.to_dict() for key, m in self.methods.items()},
             "ate_m": {key: m.ate_m for key, m in self.methods.items()},
+            "cam_ate_m": {key: m.cam_ate_m for key, m in self.methods.items()},
             "partial": self.partial,
         }
 
@@ -495,8 +504,12 @@ def comparison_title(comparison: Comparison) -> tuple[str, str]:
     title = f"{comparison.label}: " + " vs ".join(METHOD_SHORT[k] for k in comparison.methods)
     lines = [f"added noise: {describe_noise(comparison.noise)} · filter noise: {describe_filter_noise(comparison.options)}"]
     if comparison.ground_truth is not None:
-        lines.append("ATE (SE(3)-aligned RMSE): " + ", ".join(
-            f"{METHOD_SHORT[k]} {_fmt_m(m.ate_m)}" for k, m in comparison.methods.items()))
+        if any(m.cam_ate_m is not None for m in comparison.methods.values()):
+            lines.append("ATE (SE(3)-aligned RMSE), camera / IMU frame: " + ", ".join(
+                f"{METHOD_SHORT[k]} {_fmt_m(m.cam_ate_m)} / {_fmt_m(m.ate_m)}" for k, m in comparison.methods.items()))
+        else:
+            lines.append("ATE (SE(3)-aligned RMSE): " + ", ".join(
+                f"{METHOD_SHORT[k]} {_fmt_m(m.ate_m)}" for k, m in comparison.methods.items()))
     return title, "\n".join(lines)
 
 

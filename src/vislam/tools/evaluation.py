@@ -53,7 +53,7 @@ from evo.core import metrics as evo_metrics
 from evo.core import sync as evo_sync
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 
-from vislam.core.lie import is_rigid_transform, se3_inverse
+from vislam.core.lie import is_rigid_transform
 from vislam.core.metrics import KittiOdometryErrors, kitti_odometry_errors, trajectory_distances
 from vislam.errors import ConfigError, GroundTruthError, OutputError
 from vislam.tools.atomic import atomic_path, write_text_atomic
@@ -720,7 +720,10 @@ def evaluate(
         if cam_T_imu is None or not is_rigid_transform(cam_T_imu):
             raise ValueError("camera-frame evaluation needs the 4x4 rigid cam_T_imu used")
         cam_T_imu = np.array(cam_T_imu, dtype=np.float64)
-        est_cam = _check_poses(est_world_T_imu, "estimate") @ se3_inverse(cam_T_imu)
+        # world_T_cam = world_T_imu @ imu_T_cam, expressed (cam_T_imu @ ...) in the first camera's world frame
+        # as KITTI ground truth is when the estimate starts at the identity: the aligned metrics do not
+        # depend on that world frame, the unaligned APE does
+        est_cam = imu_to_camera_trajectory(_check_poses(est_world_T_imu, "estimate"), cam_T_imu)
         camera = evaluate(est_cam, gt_world_T_cam, timestamps, info={"frame": "left camera"})
     elif cam_T_imu is not None:
         cam_T_imu = np.array(cam_T_imu, dtype=np.float64)
@@ -910,21 +913,22 @@ def format_table(result: EvaluationResult) -> str:
         lines.append(f"ground truth: {description}")
     lines.append(f"ground-truth path length: {r.path_length_m:.2f} m")
     lines.append("")
-    w = 42
     c = r.camera
+    w = 50 if c is not None else 38
     if c is not None:
         lines.append("IMU frame: the estimate against the ground truth converted to the IMU with cam_T_imu (depends "
                      "on its lever arm); camera frame: the estimate as left-camera poses (world_T_imu @ imu_T_cam) "
                      "against the ground truth as it is")
     lines.append(f"{'metric':<{w}}{'rmse':>10}{'mean':>10}{'median':>10}{'max':>10}{'std':>10}")
-    rows = ((("camera frame: APE transl., SE(3)-aligned (m)", c.ape),
+    imu = "IMU frame: " if c is not None else ""
+    rows = ((("camera frame: APE translation, SE(3)-aligned (m)", c.ape),
              ("camera frame: APE translation, not aligned (m)", c.ape_unaligned)) if c is not None else ()) + (
-        ("APE translation, SE(3)-aligned (m)" if c is None else "IMU frame: APE transl., SE(3)-aligned (m)", r.ape),
-        ("APE translation, not aligned (m)", r.ape_unaligned),
-        ("RPE translation, 1 frame (m)", r.rpe_trans),
-        ("RPE rotation, 1 frame (deg)", r.rpe_rot),
-        (f"RPE translation, {RPE_DISTANCE_M:g} m (m)", r.rpe_trans_100m),
-        (f"RPE rotation, {RPE_DISTANCE_M:g} m (deg)", r.rpe_rot_100m),
+        (f"{imu}APE translation, SE(3)-aligned (m)", r.ape),
+        (f"{imu}APE translation, not aligned (m)", r.ape_unaligned),
+        (f"{imu}RPE translation, 1 frame (m)", r.rpe_trans),
+        (f"{imu}RPE rotation, 1 frame (deg)", r.rpe_rot),
+        (f"{imu}RPE translation, {RPE_DISTANCE_M:g} m (m)", r.rpe_trans_100m),
+        (f"{imu}RPE rotation, {RPE_DISTANCE_M:g} m (deg)", r.rpe_rot_100m),
     )
     for label, s in rows:
         lines.append(f"{label:<{w}}" + "".join(f"{_fmt(getattr(s, k)):>10}"
@@ -970,6 +974,14 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
         ax1.plot(d, r.unaligned_position_error_m, color="tab:blue", lw=1.2, label="not aligned")
         ax1.set_title("APE translation, not aligned (alignment impossible)", fontsize=10)
         ax1.legend(loc="upper left", fontsize=9)
+    elif r.camera is not None:  # camera ground truth: both frames
+        c = r.camera
+        ax1.plot(c.distance_along_gt_m, c.aligned_position_error_m, color="tab:green", lw=1.2,
+                 label=f"left camera (RMSE {c.ape.rmse:.3f} m)")
+        ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.0, alpha=0.8,
+                 label=f"IMU, ground truth converted with cam_T_imu (RMSE {r.ape.rmse:.3f} m)")
+        ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10)
+        ax1.legend(loc="upper left", fontsize=9)
     else:
         ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.2, label="per frame")
         ax1.axhline(r.ape.rmse, color="tab:red", ls="--", lw=1.0, label=f"RMSE {r.ape.rmse:.3f} m")
@@ -991,9 +1003,12 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
         has = k.n_segments_by_length > 0
         ax2.plot(lengths[has], k.t_pct_by_length[has], "o-", color="tab:orange", lw=1.5, ms=5,
                  label="mean per length", zorder=3)
+        frame = "IMU" if r.camera is not None else ""
+        cam = (f"; camera {r.camera.kitti.t_pct:.2f} %" if r.camera is not None and r.camera.kitti.has_segments
+               else "")
         ax2.set_title(
-            f"KITTI odometry error: {k.t_pct:.2f} % translation, {k.r_deg_per_100m:.3f} deg/100 m rotation "
-            f"({k.n_segments} segments)", fontsize=10)
+            f"KITTI odometry error{f' ({frame})' if frame else ''}: {k.t_pct:.2f} % translation, "
+            f"{k.r_deg_per_100m:.3f} deg/100 m rotation ({k.n_segments} segments){cam}", fontsize=10)
         ax2.legend(loc="upper right", fontsize=9)
         ax2.set_ylim(bottom=0)
     else:
