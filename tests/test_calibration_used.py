@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import drifting_estimate
+from conftest import drifting_estimate, shared_file
 from vislam.cli import main
 from vislam.core.corrections import apply_corrections, calibration_used, rotate_cam_T_imu
 from vislam.core.estimators import run as run_estimator
@@ -285,3 +285,39 @@ def test_a_pure_lever_arm_error_shows_in_one_frame_only(sim):
     imu_ate_b, cam_ate_b = metrics(est_b)
     assert cam_ate_b < 1e-6
     assert imu_ate_b > 0.5 * lever * np.radians(2.0)
+
+
+# ----------------------------------------------------------------------------- the shared data
+
+
+@pytest.mark.slow
+def test_eval_of_a_corrected_run_on_the_shared_ground_truth(tmp_path, capsys):
+    """Issue 24's "Done when": a run of sparse 0027 with a corrected cam_T_imu (the
+    published translation, see the data README), evaluated by ``vislam eval
+    RUN/trajectory.kitti groundtruth/0027.txt`` without flags, gives the ATE of the ground
+    truth converted with the transform the filter used."""
+    data = shared_file("sparse/0027.npz")
+    gt_path = shared_file("groundtruth/0027.txt")
+    from vislam.tools.dataset_io import load_sequence
+
+    file_cam_T_imu = load_sequence(data).cam_T_imu
+    published = file_cam_T_imu.copy()
+    published[:3, 3] = (-0.316, 0.734, -1.138)  # KITTI's published cam_T_imu translation, 2011_09_30
+    config = tmp_path / "published.yaml"
+    config.write_text(yaml.safe_dump({"cam_T_imu": published.tolist()}))
+    run_dir = tmp_path / "run"
+    code, _, err = _main(capsys, "run", data, "--mode", "localization", "--config", config, "--out", run_dir,
+                         "--quiet")
+    assert code == 0, err
+    code, _, err = _main(capsys, "eval", run_dir / "trajectory.kitti", gt_path, "--out", tmp_path / "e")
+    assert code == 0, err
+    metrics = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    est = read_kitti(run_dir / "trajectory.kitti")
+    gt_cam = read_kitti(gt_path)
+    n = len(gt_cam)
+    direct = evaluate(est[:n], camera_to_imu_trajectory(gt_cam, published)).ape.rmse
+    with_file = evaluate(est[:n], camera_to_imu_trajectory(gt_cam, file_cam_T_imu)).ape.rmse
+    assert abs(direct - with_file) > 0.1
+    assert metrics["ape_rmse_m"] == pytest.approx(direct, rel=0, abs=1e-9)
+    direct_cam = umeyama_rmse((est[:n] @ se3_inverse(published))[:, :3, 3], gt_cam[:, :3, 3])
+    assert metrics["cam_ape_rmse_m"] == pytest.approx(direct_cam, rel=0, abs=1e-9)

@@ -53,7 +53,7 @@ from evo.core import metrics as evo_metrics
 from evo.core import sync as evo_sync
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 
-from vislam.core.lie import is_rigid_transform
+from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.metrics import KittiOdometryErrors, kitti_odometry_errors, trajectory_distances
 from vislam.errors import ConfigError, GroundTruthError, OutputError
 from vislam.tools.atomic import atomic_path, write_text_atomic
@@ -720,10 +720,13 @@ def evaluate(
         if cam_T_imu is None or not is_rigid_transform(cam_T_imu):
             raise ValueError("camera-frame evaluation needs the 4x4 rigid cam_T_imu used")
         cam_T_imu = np.array(cam_T_imu, dtype=np.float64)
-        # world_T_cam = world_T_imu @ imu_T_cam, expressed (cam_T_imu @ ...) in the first camera's world frame
-        # as KITTI ground truth is when the estimate starts at the identity: the aligned metrics do not
-        # depend on that world frame, the unaligned APE does
-        est_cam = imu_to_camera_trajectory(_check_poses(est_world_T_imu, "estimate"), cam_T_imu)
+        # world_T_cam = world_T_imu @ imu_T_cam, expressed in the first camera's world frame (as KITTI ground
+        # truth is, when the estimate starts at the identity) by a left factor: the aligned metrics do not
+        # depend on that world frame, the unaligned APE does. The factor is cam_T_imu with its rotation
+        # projected onto SO(3) (the shared files' is orthonormal to 1e-7 only), so that it is exactly rigid
+        # and the aligned metrics are those of world_T_imu @ imu_T_cam to rounding.
+        world_change = _project_rotations(cam_T_imu[None])[0]
+        est_cam = world_change @ _check_poses(est_world_T_imu, "estimate") @ se3_inverse(cam_T_imu)
         camera = evaluate(est_cam, gt_world_T_cam, timestamps, info={"frame": "left camera"})
     elif cam_T_imu is not None:
         cam_T_imu = np.array(cam_T_imu, dtype=np.float64)
