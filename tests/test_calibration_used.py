@@ -112,6 +112,26 @@ def test_run_result_carries_the_calibration_after_corrections(sim):
     assert not plain.corrected and plain.corrections == ()
 
 
+def test_summary_names_where_each_correction_came_from(sim):
+    from vislam.tools.outputs import build_summary
+
+    seq = sim["drive"].sequence
+    result = run_estimator(seq, "localization", FilterOptions(imu_camera_rotation_correction_deg=(0.0, 1.5, 0.0)))
+    dataset = {"name": seq.name, "cam_T_imu": seq.cam_T_imu.tolist()}
+
+    def source(suggested):
+        summary = build_summary(result, dataset=dataset, duration_s=seq.duration_s, start_time=None,
+                                extra={"auto": {"suggested": suggested}} if suggested is not None else None)
+        (correction,) = summary["calibration"]["corrections"]
+        assert correction["field"] == "imu_camera_rotation_correction_deg" and correction["value"] == [0, 1.5, 0]
+        return correction["source"]
+
+    assert source({"imu_camera_rotation_correction_deg": [0.0, 1.5, 0.0]}) == "vislam check's suggestion (--auto)"
+    # an options file that overrides --auto's suggestion, or no --auto at all: the options
+    assert source({"imu_camera_rotation_correction_deg": [0.0, 1.0, 0.0]}) == "the filter options (options file)"
+    assert source(None) == "the filter options (options file)"
+
+
 def test_eval_without_flags_uses_the_calibration_the_filter_used(sim, tmp_path, capsys):
     file_cam_T_imu = sim["file_cam_T_imu"]
     override = corrected_cam_T_imu(file_cam_T_imu)
