@@ -593,13 +593,6 @@ class EvaluationResult:
     camera: "EvaluationResult | None" = None
     cam_T_imu: np.ndarray | None = None
 
-    def headline(self) -> dict[str, float | None]:
-        """``{"ate_m", "kitti_t_pct", "kitti_r_deg_per_100m"}`` (NaN -> None)."""
-        def finite(x):
-            return float(x) if x is not None and math.isfinite(x) else None
-        return {"ate_m": finite(self.ape.rmse), "kitti_t_pct": finite(self.kitti.t_pct),
-                "kitti_r_deg_per_100m": finite(self.kitti.r_deg_per_100m)}
-
     def to_dict(self) -> dict[str, Any]:
         """JSON-able summary (NaN becomes None, see :func:`write_metrics_json`).
 
