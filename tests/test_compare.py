@@ -237,8 +237,8 @@ def test_run_with_ground_truth_writes_metrics_and_prints_ate(tmp_path, long, cap
         assert key in ev
     assert ev["n_frames_compared"] == 300 and ev["ground_truth"]["frame"] == "cam"
     assert ev["ground_truth"]["frame_requested"] == "auto"
-    assert ev["ground_truth"]["cam_T_imu_source"] == f"dataset {data / 'sequence.npz'}"
-    assert f"{ev['ape_rmse_m']:.3f} m" in printed
+    assert ev["ground_truth"]["cam_T_imu_source"] == "calibration.cam_T_imu of this run (the transform the filter used)"
+    assert f"IMU {ev['ape_rmse_m']:.3f} m" in printed and f"camera {ev['cam_ape_rmse_m']:.3f} m" in printed
     assert "metrics.json" in summary["outputs"] and "error_over_distance.png" in summary["outputs"]
     assert json.loads((out / "metrics.json").read_text())["ape_rmse_m"] == pytest.approx(ev["ape_rmse_m"])
 

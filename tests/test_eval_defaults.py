@@ -97,10 +97,12 @@ def test_eval_kitti_default_is_camera_with_cam_T_imu_from_the_run_summary(sim, t
     # recorded and printed: which frame, why, and where cam_T_imu came from
     summary_path = str(sim["run"].resolve() / "summary.json")
     assert default["ground_truth_frame"] == "cam" and default["ground_truth_frame_requested"] == "auto"
-    assert default["cam_T_imu_source"] == f"{summary_path} (dataset.cam_T_imu)"
+    # the transform the filter used, recorded by the run (no correction here: the file's)
+    assert default["cam_T_imu_source"] == f"{summary_path} (calibration.cam_T_imu, the transform the filter used)"
     np.testing.assert_array_equal(default["cam_T_imu"], sim["drive"].sequence.cam_T_imu)
     assert explicit["ground_truth_frame_requested"] == "cam"
-    assert explicit["cam_T_imu_source"] == f"dataset {sim['data']}"
+    # --dataset of the same data file: the run's calibration still wins (it is what the filter used)
+    assert explicit["cam_T_imu_source"] == default["cam_T_imu_source"]
     header = next(line for line in printed.splitlines() if line.startswith("ground truth:"))
     assert "left-camera poses (default for KITTI ground truth)" in header and summary_path in header
 
@@ -159,7 +161,7 @@ def test_run_gt_kitti_default_is_camera(sim, tmp_path, capsys):
                  "--gt", str(sim["gt_cam"])]) == 0
     ev = json.loads((out / "summary.json").read_text())["evaluation"]
     assert ev["ground_truth"]["frame"] == "cam" and ev["ground_truth"]["frame_requested"] == "auto"
-    assert ev["ground_truth"]["cam_T_imu_source"] == f"dataset {sim['data']}"
+    assert ev["ground_truth"]["cam_T_imu_source"] == "calibration.cam_T_imu of this run (the transform the filter used)"
     assert ev["ape_rmse_m"] == pytest.approx(sim["ate"], rel=0, abs=1e-9)
     assert _metrics(out)["ground_truth_frame"] == "cam"
     # TUM: IMU by default
@@ -172,7 +174,10 @@ def test_run_gt_kitti_default_is_camera(sim, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("damage, fragments", [
-    (lambda s: s["dataset"].pop("cam_T_imu"), ("dataset.cam_T_imu", "--dataset ", "sequence.npz")),
+    (lambda s: (s["dataset"].pop("cam_T_imu"), s.pop("calibration")),
+     ("calibration.cam_T_imu", "dataset.cam_T_imu", "--dataset ", "sequence.npz")),
+    (lambda s: s["calibration"].__setitem__("cam_T_imu", [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]),
+     ("calibration.cam_T_imu", "4x4 rigid")),
     (lambda s: s["dataset"].__setitem__("cam_T_imu", [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]),
      ("dataset.cam_T_imu", "4x4 rigid")),
     (lambda s: s["dataset"].__setitem__("cam_T_imu", [[1, 0, 0], [0, 1, 0], [0, 0, 1]]),
@@ -192,6 +197,20 @@ def test_eval_validates_the_run_summary(sim, tmp_path, capsys, damage, fragments
         summary_path.write_text(json.dumps(summary))
     code, _, err = _eval(capsys, run_dir / "trajectory.kitti", sim["gt_cam"], "--out", tmp_path / "e")
     _assert_refused(code, err, tmp_path / "e", str(summary_path), *fragments)
+
+
+def test_eval_of_an_older_run_summary_uses_the_file_transform_and_says_so(sim, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    shutil.copytree(sim["run"], run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    del summary["calibration"]  # as written before the calibration was recorded
+    (run_dir / "summary.json").write_text(json.dumps(summary))
+    code, printed, err = _eval(capsys, run_dir / "trajectory.kitti", sim["gt_cam"], "--out", tmp_path / "e")
+    assert code == 0, err
+    metrics = _metrics(tmp_path / "e")
+    assert metrics["ape_rmse_m"] == pytest.approx(sim["ate"], rel=0, abs=1e-9)
+    assert "dataset.cam_T_imu, the data file's transform" in metrics["cam_T_imu_source"]
+    assert "the data file's transform" in printed
 
 
 def test_load_ground_truth_defaults_follow_the_format(sim):

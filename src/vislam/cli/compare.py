@@ -92,18 +92,27 @@ def format_comparison(comparison, content: dict, out_dir) -> str:
         lines.append(f"auto (check): {describe_suggestions(comparison.auto)}")
     header = f"{'method':<38}{'frames':>8}{'landmarks':>11}{'time s':>9}{'ms/frame':>10}"
     has_gt = comparison.ground_truth is not None
+    has_cam = has_gt and any((m.get("evaluation") or {}).get("cam_ape_rmse_m") is not None
+                             for m in content["methods"].values())
+    if has_cam:
+        header += f"{'cam ATE m':>10}{'cam KITTI %':>12}"
     if has_gt:
-        header += f"{'ATE (m)':>10}{'KITTI %':>9}{'deg/100m':>10}"
+        header += f"{'IMU ATE m' if has_cam else 'ATE (m)':>10}{'KITTI %':>9}{'deg/100m':>10}"
     lines.append(header)
     for key, m in content["methods"].items():
         frames = f"{m['frames_processed']}" + ("" if m["frames_processed"] == m["frames"] else f"/{m['frames']}")
         row = (f"{m['label']:<38}{frames:>8}{m['landmarks_in_map']:>11}{m['estimation_seconds']:>9.2f}"
                f"{_num(m['frame_ms_median'], '.2f'):>10}")
         ev = m.get("evaluation")
+        if has_cam and ev:
+            row += f"{_num(ev.get('cam_ape_rmse_m'), '.3f'):>10}{_num(ev.get('cam_kitti_t_pct'), '.2f'):>12}"
         if has_gt and ev:
             row += (f"{_num(ev['ape_rmse_m'], '.3f'):>10}{_num(ev['kitti_t_pct'], '.2f'):>9}"
                     f"{_num(ev['kitti_r_deg_per_100m'], '.3f'):>10}")
         lines.append(row)
+    if has_cam:
+        lines.append("cam: the estimate as left-camera poses (calibration used) vs the ground truth as it is; IMU: "
+                     "vs the ground truth converted to the IMU with that calibration (KITTI %, deg/100m: IMU frame)")
     folders = ", ".join(f"{k}/" for k in content["methods"])
     lines.append(f"time s: estimation (refine: smoother + refinement); ms/frame: median per frame (refine: the "
                  f"smoother's)" if "refine" in content["methods"] else
@@ -135,10 +144,8 @@ def run(args) -> int:
     if options.has_data_corrections:  # from --auto or vislam check's suggested.yaml
         from vislam.core.corrections import apply_corrections
 
-        sequence = apply_corrections(sequence, options)
-        if gt is not None and gt_info["frame"] == "cam":  # camera poses -> IMU with the corrected cam_T_imu
-            gt, gt_info = ground_truth_from_args(args, sequence)
-    dataset = dataset_record(sequence, data)  # cam_T_imu as corrected, for vislam eval of the folders
+        sequence = apply_corrections(sequence, options)  # camera ground truth: converted with each run's calibration
+    dataset = dataset_record(sequence, data)  # the file's cam_T_imu; the one used is in each summary's calibration
 
     stage = OutputStage(args.out)
     close = lambda: None  # noqa: E731

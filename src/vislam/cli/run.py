@@ -265,9 +265,10 @@ def ground_truth_from_args(args, sequence):
     """``(TrajectoryFile, info)`` of ``--gt`` checked against ``sequence``, or ``(None, None)``.
 
     ``--gt-frame auto`` follows the format's convention (KITTI: left camera, TUM: IMU);
-    camera poses are converted with the dataset's ``cam_T_imu``. ``info`` (summary.json's
-    ``evaluation.ground_truth``) records the frame used, what was asked for and where
-    ``cam_T_imu`` came from.
+    camera poses are checked against the dataset now and converted, after the run, with
+    the ``cam_T_imu`` the filter used (:func:`vislam.tools.comparison.evaluate_run`).
+    ``info`` (summary.json's ``evaluation.ground_truth``) records the frame used, what was
+    asked for and where ``cam_T_imu`` comes from.
     """
     if not getattr(args, "gt", None):
         return None, None
@@ -278,8 +279,10 @@ def ground_truth_from_args(args, sequence):
                                             cam_T_imu_source=f"dataset {sequence.source or sequence.name}",
                                             ground_truth_path=args.gt)
     gt = load_run_ground_truth(args.gt, sequence, args.gt_format, conversion.frame)
+    source = ("calibration.cam_T_imu of this run (the transform the filter used)" if conversion.frame == "cam"
+              else None)
     info = {"path": str(Path(args.gt).resolve()), "format": args.gt_format, "frame": conversion.frame,
-            "frame_requested": args.gt_frame, "cam_T_imu_source": conversion.cam_T_imu_source}
+            "frame_requested": args.gt_frame, "cam_T_imu_source": source}
     return gt, info
 
 
@@ -375,9 +378,17 @@ def format_evaluation_line(ev: dict) -> str:
     def num(x, spec, unit=""):
         return "n/a" if x is None or not math.isfinite(x) else f"{x:{spec}}{unit}"
 
-    return (f"ATE:           {num(ev.get('ape_rmse_m'), '.3f', ' m')} (SE(3)-aligned RMSE vs ground truth, "
-            f"{ev.get('n_frames_compared')} frames); KITTI {num(ev.get('kitti_t_pct'), '.2f', ' %')}, "
-            f"{num(ev.get('kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}")
+    if ev.get("cam_ape_rmse_m") is None and ev.get("cam_kitti_t_pct") is None:  # IMU ground truth
+        return (f"ATE:           {num(ev.get('ape_rmse_m'), '.3f', ' m')} (SE(3)-aligned RMSE vs ground truth, "
+                f"{ev.get('n_frames_compared')} frames); KITTI {num(ev.get('kitti_t_pct'), '.2f', ' %')}, "
+                f"{num(ev.get('kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}")
+    return (f"ATE:           camera {num(ev.get('cam_ape_rmse_m'), '.3f', ' m')}, IMU "
+            f"{num(ev.get('ape_rmse_m'), '.3f', ' m')} (SE(3)-aligned RMSE vs ground truth, "
+            f"{ev.get('n_frames_compared')} frames; camera: the left-camera poses with the calibration used vs the "
+            f"ground truth as it is; IMU: vs the ground truth converted with that calibration)\n"
+            f"KITTI:         camera {num(ev.get('cam_kitti_t_pct'), '.2f', ' %')}, "
+            f"{num(ev.get('cam_kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}; IMU "
+            f"{num(ev.get('kitti_t_pct'), '.2f', ' %')}, {num(ev.get('kitti_r_deg_per_100m'), '.3f', ' deg/100 m')}")
 
 
 def _print(text: str) -> None:
@@ -436,8 +447,6 @@ def run(args) -> int:
         from vislam.core.corrections import apply_corrections
 
         sequence = apply_corrections(sequence, options)  # a no-op if the estimators apply them again
-        if gt is not None and gt_info["frame"] == "cam":  # camera poses -> IMU with the corrected cam_T_imu
-            gt, gt_info = ground_truth_from_args(args, sequence)
 
     stage = OutputStage(args.out)
     progress, close = None, lambda: None

@@ -109,9 +109,10 @@ def run(args) -> int:
                 key = "/".join(str(row[k]) for k in ("dataset", "mode", "options", "noise", "seed"))
                 bar.write(f"vislam sweep: {key}: error: {row['error']}", file=sys.stderr)
         elif not quiet:
-            ate = row.get("ate_m")
-            what = row["error"] if row["status"] == "error" else (f"ATE {float(ate):.3f} m" if ate not in (None, "")
-                                                                   else "done")
+            ate, cam = row.get("ate_m"), row.get("cam_ate_m")
+            what = ("done" if ate in (None, "") else f"ATE {float(ate):.3f} m" if cam in (None, "")
+                    else f"ATE camera {float(cam):.3f} m, IMU {float(ate):.3f} m")
+            what = row["error"] if row["status"] == "error" else what
             say(f"[{done}/{total}] {'/'.join(str(row[k]) for k in ('dataset', 'mode', 'options', 'noise', 'seed'))}: "
                 f"{row['status']}, {what}")
 

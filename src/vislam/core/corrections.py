@@ -26,7 +26,11 @@ In this order:
 
 With every field at its default, the input object itself is returned, and so is a
 sequence these same corrections were already applied to (``Sequence.corrections``), so
-that a caller and the estimators may both apply them safely.
+that a caller and the estimators may both apply them safely. The recording's own
+transform stays in ``Sequence.file_cam_T_imu`` when step 4 changes it, and
+:func:`calibration_used` says which ``cam_T_imu`` a filter on the sequence uses and which
+corrections made it (every estimator's :class:`~vislam.core.results.RunResult` carries it
+as ``calibration``).
 """
 
 from __future__ import annotations
@@ -35,10 +39,14 @@ import numpy as np
 
 from vislam.core.lie import so3_exp
 from vislam.core.options import DATA_CORRECTION_FIELDS, FilterOptions
+from vislam.core.results import CalibrationUsed
 from vislam.core.sequence import Sequence
 
 __all__ = ["apply_corrections", "correction_values", "shift_to_current_association", "resample_velocities",
-           "rotate_cam_T_imu"]
+           "rotate_cam_T_imu", "calibration_used", "CALIBRATION_FIELDS"]
+
+#: The data-correction fields that change ``cam_T_imu`` (step 4 of the module docstring).
+CALIBRATION_FIELDS = ("cam_T_imu", "imu_camera_rotation_correction_deg")
 
 
 def shift_to_current_association(u: np.ndarray) -> np.ndarray:
@@ -93,8 +101,27 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
     u = u - np.concatenate([np.asarray(options.velocity_bias_mps), np.asarray(options.gyro_bias_radps)])
     cam_T_imu = np.array(options.cam_T_imu, dtype=np.float64) if options.cam_T_imu is not None else sequence.cam_T_imu
     cam_T_imu = rotate_cam_T_imu(cam_T_imu, options.imu_camera_rotation_correction_deg)
+    recorded = sequence.recorded_cam_T_imu
+    file_cam_T_imu = None if np.array_equal(cam_T_imu, recorded) else recorded
     return sequence.replace(linear_velocity_in_imu_mps=u[:, :3], angular_velocity_in_imu_radps=u[:, 3:],
-                            cam_T_imu=cam_T_imu, corrections=applied)
+                            cam_T_imu=cam_T_imu, corrections=applied, file_cam_T_imu=file_cam_T_imu)
+
+
+def calibration_used(sequence: Sequence) -> CalibrationUsed:
+    """The ``cam_T_imu`` a filter run on ``sequence`` uses (``sequence.cam_T_imu``), the
+    recording's own, and the corrections (of ``sequence.corrections``) that turned one into
+    the other, in the order they were applied."""
+    corrections = []
+    applied = sequence.corrections or {}
+    if applied.get("cam_T_imu") is not None:
+        corrections.append({"field": "cam_T_imu", "value": [list(map(float, row)) for row in applied["cam_T_imu"]],
+                            "effect": "replaces the recording's cam_T_imu"})
+    phi = applied.get("imu_camera_rotation_correction_deg")
+    if phi is not None and any(float(x) != 0.0 for x in phi):
+        corrections.append({"field": "imu_camera_rotation_correction_deg", "value": [float(x) for x in phi],
+                            "effect": "turns the rotation block: R <- exp(phi) R (camera frame, degrees); the "
+                                      "translation is kept"})
+    return CalibrationUsed(np.array(sequence.cam_T_imu), np.array(sequence.recorded_cam_T_imu), tuple(corrections))
 
 
 def correction_values(options: FilterOptions) -> dict:

@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from vislam.core.corrections import apply_corrections
+from vislam.core.corrections import apply_corrections, calibration_used
 from vislam.core.filters import FRAME_STAT_FIELDS, LocalizationFilter, MappingFilter, SlamFilter, single_thread_blas
 from vislam.core.lie import se3_inverse
 from vislam.core.options import MODES, FilterOptions
@@ -175,7 +175,7 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
         world_T_imu = se3_inverse(imu_T_world[:done]) if done else np.zeros((0, 4, 4))
     result = RunResult(filt.mode, sequence.name, sequence.timestamps_s[:done].copy(), world_T_imu,
                        covs[:done] if has_cov else None, landmarks, filt.options, stats,
-                       partial=error is not None, error=error)
+                       partial=error is not None, error=error, calibration=calibration_used(sequence))
     if hasattr(filt, "final_trajectory"):  # a smoother: its final poses (and marginals) replace the online ones
         result.extra["online_world_T_imu"] = result.world_T_imu
         result.extra["online_pose_covariance"] = result.pose_covariance

@@ -10,12 +10,49 @@ import numpy as np
 from vislam.core.lie import se3_inverse
 from vislam.core.options import FilterOptions
 
-__all__ = ["LandmarkMap", "RunStats", "RunResult", "LANDMARK_OK", "LANDMARK_REJECTED", "model_fit_warnings",
+__all__ = ["CalibrationUsed", "LandmarkMap", "RunStats", "RunResult", "LANDMARK_OK", "LANDMARK_REJECTED", "model_fit_warnings",
            "FIT_LIMITS"]
 
 #: Landmark status codes in :attr:`LandmarkMap.status`.
 LANDMARK_OK = 0
 LANDMARK_REJECTED = 1
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationUsed:
+    """The IMU-camera calibration a run used (see
+    :func:`vislam.core.corrections.calibration_used`).
+
+    Attributes:
+        cam_T_imu: (4, 4) the transform the filter used, after every correction (maps IMU
+            coordinates into the left camera frame).
+        recorded_cam_T_imu: (4, 4) the recording's own (the data file's) transform.
+        corrections: what turned the one into the other, in order: ``{"field", "value",
+            "effect"}`` per FilterOptions field (``cam_T_imu``,
+            ``imu_camera_rotation_correction_deg``); empty when the file's is used.
+    """
+
+    cam_T_imu: np.ndarray
+    recorded_cam_T_imu: np.ndarray
+    corrections: tuple = ()
+
+    @property
+    def corrected(self) -> bool:
+        """Whether the transform used differs from the recording's."""
+        return not np.array_equal(self.cam_T_imu, self.recorded_cam_T_imu)
+
+    @property
+    def imu_T_cam(self) -> np.ndarray:
+        return se3_inverse(self.cam_T_imu)
+
+    def to_dict(self) -> dict[str, Any]:
+        """summary.json's ``calibration`` entry."""
+        return {"cam_T_imu": np.asarray(self.cam_T_imu).tolist(),
+                "cam_T_imu_meaning": "the transform the filter used (maps IMU coordinates into the left camera "
+                                     "frame), after the corrections listed",
+                "file_cam_T_imu": np.asarray(self.recorded_cam_T_imu).tolist(),
+                "corrected": self.corrected,
+                "corrections": [dict(c) for c in self.corrections]}
 
 
 @dataclass
@@ -143,6 +180,9 @@ class RunResult:
         extra: more results of some runs, e.g. ``"imu_bias"``: (T, 6) estimate b̂ =
             (b_v, b_ω) of the SLAM filter's IMU-error state after each frame (m/s,
             rad/s), when it is on (FilterOptions.imu_bias_sigma_*).
+        calibration: the ``cam_T_imu`` the run used and the corrections that made it
+            (:class:`CalibrationUsed`), or None for a result built by hand; every
+            consumer converting camera ground truth takes the transform from here.
     """
 
     mode: str
@@ -157,6 +197,7 @@ class RunResult:
     error: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     frame_stats: dict[str, np.ndarray] | None = None
+    calibration: CalibrationUsed | None = None
 
     @property
     def imu_T_world(self) -> np.ndarray:

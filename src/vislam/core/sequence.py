@@ -224,6 +224,9 @@ class Sequence:
         corrections: the data corrections already applied to it (a mapping of
             FilterOptions fields, see :func:`vislam.core.corrections.apply_corrections`),
             or None for the data as recorded.
+        file_cam_T_imu: (4, 4) the recording's own ``cam_T_imu`` when corrections
+            replaced it (a ``cam_T_imu`` override, a rotation correction), else None:
+            ``cam_T_imu`` is the recording's (see :attr:`recorded_cam_T_imu`).
     """
 
     name: str
@@ -235,6 +238,7 @@ class Sequence:
     cam_T_imu: np.ndarray
     source: str = ""
     corrections: dict | None = None
+    file_cam_T_imu: np.ndarray | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "timestamps_s", frozen_array(np.ravel(self.timestamps_s), np.float64))
@@ -251,6 +255,10 @@ class Sequence:
             raise ValueError(f"observations cover {self.observations.n_frames} frames, timestamps {t}")
         if self.cam_T_imu.shape != (4, 4):
             raise ValueError("cam_T_imu must be 4x4")
+        if self.file_cam_T_imu is not None:
+            object.__setattr__(self, "file_cam_T_imu", frozen_array(self.file_cam_T_imu, np.float64))
+            if self.file_cam_T_imu.shape != (4, 4):
+                raise ValueError("file_cam_T_imu must be 4x4")
 
     @property
     def n_frames(self) -> int:
@@ -271,6 +279,11 @@ class Sequence:
         out = se3_inverse(self.cam_T_imu)
         out.setflags(write=False)
         return out
+
+    @property
+    def recorded_cam_T_imu(self) -> np.ndarray:
+        """The recording's own ``cam_T_imu`` (the data file's), before any correction."""
+        return self.file_cam_T_imu if self.file_cam_T_imu is not None else self.cam_T_imu
 
     @property
     def calibration(self) -> Calibration:

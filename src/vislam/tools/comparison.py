@@ -39,7 +39,7 @@ from vislam.core.noise import NoiseSpec, inject_noise
 from vislam.core.options import FilterOptions
 from vislam.core.results import RunResult
 from vislam.core.sequence import Sequence
-from vislam.tools.evaluation import EvaluationResult, associate, evaluate, load_ground_truth, \
+from vislam.tools.evaluation import EvaluationResult, associate, evaluate_associated, load_ground_truth, \
     plot_error_over_distance, write_metrics_json
 from vislam.tools.jsonio import write_json
 from vislam.tools.outputs import OutputStage, write_run_outputs
@@ -122,6 +122,8 @@ SUMMARY_METRICS = (
     "ape_rmse_m", "ape_mean_m", "ape_median_m", "ape_max_m", "ape_unaligned_rmse_m",
     "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "rpe_trans_100m_rmse_m", "rpe_rot_100m_rmse_deg",
     "kitti_t_pct", "kitti_r_deg_per_100m", "kitti_segments",
+    "cam_ape_rmse_m", "cam_ape_mean_m", "cam_ape_median_m", "cam_ape_max_m", "cam_kitti_t_pct",
+    "cam_kitti_r_deg_per_100m", "cam_kitti_segments", "metrics_frames",
 )
 
 
@@ -134,7 +136,9 @@ def load_run_ground_truth(path, sequence: Sequence, fmt: str = "kitti", frame: s
     dataset's frames (at least 2 pairs), so a wrong file fails before any work.
 
     ``frame="auto"`` follows the format's convention (KITTI: left camera, TUM: IMU);
-    camera poses are converted with ``sequence.cam_T_imu``.
+    camera poses are converted with ``sequence.cam_T_imu`` and kept as they are beside
+    (:class:`~vislam.tools.evaluation.GroundTruthTrajectory`): :func:`evaluate_run`
+    converts them again with the transform the run used.
 
     Raises GroundTruthError / ConfigError with a one-line message naming the file.
     """
@@ -148,18 +152,32 @@ def load_run_ground_truth(path, sequence: Sequence, fmt: str = "kitti", frame: s
 
 def evaluate_run(result: RunResult, ground_truth: TrajectoryFile, sequence: Sequence,
                  max_diff_s: float = DEFAULT_MAX_DIFF_S) -> EvaluationResult:
-    """Errors of a run's trajectory (the frames it processed) against ``ground_truth``."""
+    """Errors of a run's trajectory (the frames it processed) against ``ground_truth``.
+
+    A ground truth of camera poses (a :class:`~vislam.tools.evaluation.GroundTruthTrajectory`
+    with ``world_T_cam``, as :func:`load_run_ground_truth` returns) is converted to the IMU
+    with the transform the run used (``result.calibration.cam_T_imu``; the sequence's for
+    a result without one), whatever it was loaded with, and also evaluated in the camera
+    frame (``EvaluationResult.camera``)."""
     est = TrajectoryFile(np.asarray(result.world_T_imu), np.asarray(result.timestamps_s), "tum",
                          f"{result.mode} estimate of {sequence.name}")
-    assoc = associate(est, ground_truth, sequence.timestamps_s, max_diff_s)
     info = {
         "estimate": f"{result.mode} run",
         "ground_truth": str(ground_truth.path),
         "ground_truth_format": ground_truth.fmt,
         "dataset": sequence.source or sequence.name,
-        "association": assoc.to_dict(),
     }
-    return evaluate(assoc.est_world_T_imu, assoc.gt_world_T_imu, assoc.timestamps_s, info=info)
+    world_T_cam = getattr(ground_truth, "world_T_cam", None)
+    if world_T_cam is None:
+        return evaluate_associated(est, ground_truth, sequence.timestamps_s, max_diff_s, info=info)
+    if result.calibration is not None:
+        cam_T_imu = result.calibration.cam_T_imu
+        source = "the run's calibration.cam_T_imu (the transform the filter used)"
+    else:
+        cam_T_imu, source = sequence.cam_T_imu, f"dataset {sequence.source or sequence.name}"
+    info.update(ground_truth_frame="cam", cam_T_imu_source=source, cam_T_imu=np.asarray(cam_T_imu).tolist())
+    return evaluate_associated(est, ground_truth.camera_file(), sequence.timestamps_s, max_diff_s,
+                               cam_T_imu=cam_T_imu, info=info)
 
 
 def evaluation_summary(evaluation: EvaluationResult, **extra) -> dict[str, Any]:
@@ -189,7 +207,7 @@ def stage_evaluation(directory, evaluation: EvaluationResult, title: str, **extr
     gt_info = extra.get("ground_truth")
     if isinstance(gt_info, Mapping):
         frame_info = {name: gt_info[key] for key, name in _FRAME_INFO_KEYS.items() if key in gt_info}
-        evaluation = replace(evaluation, info={**evaluation.info, **frame_info})
+        evaluation = replace(evaluation, info={**frame_info, **evaluation.info})  # the evaluation's own first
     write_metrics_json(evaluation, directory / METRICS_FILE)
     plot_error_over_distance(evaluation, directory / ERROR_FIGURE_FILE, title=title)
     return evaluation_summary(evaluation, **extra, metrics_file=METRICS_FILE, figure=ERROR_FIGURE_FILE)
@@ -266,6 +284,14 @@ class MethodResult:
         if self.evaluation is None or not math.isfinite(self.evaluation.ape.rmse):
             return None
         return float(self.evaluation.ape.rmse)
+
+    @property
+    def cam_ate_m(self) -> float | None:
+        """Camera-frame ATE (camera ground truth only), else None."""
+        camera = self.evaluation.camera if self.evaluation is not None else None
+        if camera is None or not math.isfinite(camera.ape.rmse):
+            return None
+        return float(camera.ape.rmse)
 
     @property
     def refine_seconds(self) -> float | None:
@@ -349,11 +375,16 @@ class Comparison:
         if self.ground_truth is None:
             return None
         gt = self.ground_truth
+        poses = gt.world_T_body
+        if getattr(gt, "world_T_cam", None) is not None:  # camera poses: with the cam_T_imu the runs used
+            from vislam.tools.trajectory_io import camera_to_imu_trajectory
+
+            poses = camera_to_imu_trajectory(gt.world_T_cam, self.sequence.cam_T_imu)
         if gt.timestamps_s is None:
-            return gt.world_T_body[: self.sequence.n_frames]
+            return poses[: self.sequence.n_frames]
         keep = (gt.timestamps_s >= self.sequence.timestamps_s[0] - DEFAULT_MAX_DIFF_S) & \
                (gt.timestamps_s <= self.sequence.timestamps_s[-1] + DEFAULT_MAX_DIFF_S)
-        return gt.world_T_body[keep]
+        return poses[keep]
 
     def to_dict(self) -> dict[str, Any]:
         from vislam import __version__
@@ -367,16 +398,19 @@ class Comparison:
             "auto": self.auto,
             "methods": {key: m.to_dict() for key, m in self.methods.items()},
             "ate_m": {key: m.ate_m for key, m in self.methods.items()},
+            "cam_ate_m": {key: m.cam_ate_m for key, m in self.methods.items()},
             "partial": self.partial,
         }
 
 
 def dataset_record(sequence: Sequence, path=None, label: str | None = None) -> dict[str, Any]:
-    """The ``dataset`` entry of summary.json / comparison.json."""
+    """The ``dataset`` entry of summary.json / comparison.json (``cam_T_imu``: the data
+    file's, before any correction; the one the filter used is summary.json's
+    ``calibration.cam_T_imu``)."""
     return {"name": sequence.name, "label": label or sequence.name,
             "path": str(Path(path).resolve()) if path is not None else (sequence.source or None),
             "frames": sequence.n_frames, "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s,
-            "cam_T_imu": sequence.cam_T_imu.tolist()}
+            "cam_T_imu": sequence.recorded_cam_T_imu.tolist()}
 
 
 def runs_of(methods) -> tuple[str, ...]:
@@ -470,8 +504,12 @@ def comparison_title(comparison: Comparison) -> tuple[str, str]:
     title = f"{comparison.label}: " + " vs ".join(METHOD_SHORT[k] for k in comparison.methods)
     lines = [f"added noise: {describe_noise(comparison.noise)} · filter noise: {describe_filter_noise(comparison.options)}"]
     if comparison.ground_truth is not None:
-        lines.append("ATE (SE(3)-aligned RMSE): " + ", ".join(
-            f"{METHOD_SHORT[k]} {_fmt_m(m.ate_m)}" for k, m in comparison.methods.items()))
+        if any(m.cam_ate_m is not None for m in comparison.methods.values()):
+            lines.append("ATE (SE(3)-aligned RMSE), camera / IMU frame: " + ", ".join(
+                f"{METHOD_SHORT[k]} {_fmt_m(m.cam_ate_m)} / {_fmt_m(m.ate_m)}" for k, m in comparison.methods.items()))
+        else:
+            lines.append("ATE (SE(3)-aligned RMSE): " + ", ".join(
+                f"{METHOD_SHORT[k]} {_fmt_m(m.ate_m)}" for k, m in comparison.methods.items()))
     return title, "\n".join(lines)
 
 

@@ -7,10 +7,13 @@
   ``cam_T_imu`` comes from. The default, ``"auto"``, follows the file format's
   convention: KITTI ground truth holds left-camera poses (``"cam"``), TUM ground truth
   IMU poses (``"imu"``; TUM has no body convention, vislam's TUM files hold the IMU).
-  ``cam_T_imu`` comes from the dataset when one is given, else from the ``summary.json``
-  of the run folder the estimate sits in (:func:`cam_T_imu_from_run_summary`); with
-  neither, a camera-frame ground truth is refused with one line (never silently read
-  as IMU poses).
+  ``cam_T_imu`` is the one the filter used, recorded as ``calibration.cam_T_imu`` in the
+  ``summary.json`` of the run folder the estimate sits in (:func:`cam_T_imu_from_run_summary`;
+  with a dataset given, when that summary belongs to the same data file), else the
+  dataset's, else the summary's ``dataset.cam_T_imu`` (the data file's, of summaries
+  written before the calibration was recorded); with none, a camera-frame ground truth
+  is refused with one line (never silently read as IMU poses). Which one was used is
+  said in the result (``cam_T_imu_source``).
 * :func:`load_estimate` reads an estimate, KITTI or TUM (detected from the number of
   values per line).
 * :func:`associate` pairs estimate and ground-truth poses: KITTI ground truth by frame
@@ -19,7 +22,13 @@
 * :func:`evaluate` computes, with evo, the APE (translation part) with SE(3) Umeyama
   alignment and without alignment, the RPE (translation in m and rotation in deg) over 1
   frame and over 100 m of ground-truth path, and the KITTI odometry metric of
-  :mod:`vislam.core.metrics`.
+  :mod:`vislam.core.metrics` — of the IMU poses. Where the ground truth holds camera
+  poses it also evaluates the **camera frame** (``EvaluationResult.camera``, keys
+  ``cam_*``): the estimate turned into left-camera poses with the calibration used,
+  ``world_T_cam = world_T_imu @ imu_T_cam``, against the ground truth as it is (SE(3)
+  Umeyama alignment, KITTI segments). The camera-frame numbers do not depend on
+  ``cam_T_imu`` entering the ground truth; the IMU-frame numbers do (a wrong lever arm
+  turns every rotation error of the camera into a position error of the IMU).
 * :func:`plot_error_over_distance`, :func:`write_metrics_json` and :func:`format_table`
   present an :class:`EvaluationResult`.
 
@@ -44,7 +53,7 @@ from evo.core import metrics as evo_metrics
 from evo.core import sync as evo_sync
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 
-from vislam.core.lie import is_rigid_transform
+from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.metrics import KittiOdometryErrors, kitti_odometry_errors, trajectory_distances
 from vislam.errors import ConfigError, GroundTruthError, OutputError
 from vislam.tools.atomic import atomic_path, write_text_atomic
@@ -74,6 +83,8 @@ __all__ = [
     "camera_to_imu_trajectory",
     "imu_to_camera_trajectory",
     "GroundTruthFrame",
+    "GroundTruthTrajectory",
+    "RunCalibration",
     "default_gt_frame",
     "cam_T_imu_from_run_summary",
     "resolve_ground_truth_frame",
@@ -81,7 +92,9 @@ __all__ = [
     "load_estimate",
     "associate",
     "evaluate",
+    "evaluate_associated",
     "evaluate_files",
+    "METRICS_FRAMES",
     "plot_error_over_distance",
     "write_metrics_json",
     "format_table",
@@ -91,9 +104,36 @@ logger = logging.getLogger(__name__)
 
 #: Ground-truth path length (m) between the poses of the distance-based RPE.
 RPE_DISTANCE_M = 100.0
-#: The file of a run folder (``vislam run``, ``vislam demo``) that records the dataset's
-#: ``cam_T_imu`` under ``dataset.cam_T_imu``.
+#: The file of a run folder (``vislam run``, ``vislam demo``) that records the
+#: ``cam_T_imu`` the filter used under ``calibration.cam_T_imu`` (and the data file's under
+#: ``dataset.cam_T_imu``).
 RUN_SUMMARY_FILE = "summary.json"
+#: Prefix of the camera-frame metrics in :meth:`EvaluationResult.to_dict`.
+CAMERA_PREFIX = "cam_"
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruthTrajectory(TrajectoryFile):
+    """A ground truth as ``world_T_imu`` (``world_T_body``) and, when the file holds
+    left-camera poses, those poses as they are.
+
+    Attributes (besides :class:`TrajectoryFile`'s):
+        frame: ``"imu"`` or ``"cam"`` (the file's body frame).
+        world_T_cam: (N, 4, 4) the file's camera poses (``frame="cam"``), else None.
+        cam_T_imu: (4, 4) the transform ``world_T_body`` was converted with, else None.
+        cam_T_imu_source: where that transform came from, else None.
+    """
+
+    frame: str = "imu"
+    world_T_cam: np.ndarray | None = None
+    cam_T_imu: np.ndarray | None = None
+    cam_T_imu_source: str | None = None
+
+    def camera_file(self) -> TrajectoryFile:
+        """The file's camera poses as a TrajectoryFile (``frame="cam"`` only)."""
+        if self.world_T_cam is None:
+            raise ValueError("this ground truth holds IMU poses")
+        return TrajectoryFile(self.world_T_cam, self.timestamps_s, self.fmt, self.path)
 
 
 # ----------------------------------------------------------------------------- loading
@@ -135,14 +175,15 @@ class GroundTruthFrame:
             "cam_T_imu": self.cam_T_imu.tolist() if self.cam_T_imu is not None else None,
         }
 
-    def apply(self, traj: TrajectoryFile) -> TrajectoryFile:
-        """``traj`` (poses of this frame) as world_T_imu."""
+    def apply(self, traj: TrajectoryFile) -> GroundTruthTrajectory:
+        """``traj`` (poses of this frame) as world_T_imu (camera poses kept beside)."""
         if self.frame == "imu":
-            return traj
+            return GroundTruthTrajectory(traj.world_T_body, traj.timestamps_s, traj.fmt, traj.path)
         poses = camera_to_imu_trajectory(traj.world_T_body, self.cam_T_imu)
         logger.info("%s: converted %d left-camera poses to the IMU frame (cam_T_imu from %s)",
                     traj.path, len(traj), self.cam_T_imu_source)
-        return TrajectoryFile(poses, traj.timestamps_s, traj.fmt, traj.path)
+        return GroundTruthTrajectory(poses, traj.timestamps_s, traj.fmt, traj.path, "cam", traj.world_T_body,
+                                     self.cam_T_imu, self.cam_T_imu_source)
 
 
 def _check_format_and_frame(fmt: str, frame: str) -> None:
@@ -152,14 +193,43 @@ def _check_format_and_frame(fmt: str, frame: str) -> None:
         raise ConfigError(f"unknown ground-truth frame {frame!r}; expected one of {', '.join(GT_FRAME_CHOICES)}")
 
 
-def cam_T_imu_from_run_summary(directory) -> tuple[np.ndarray, str] | None:
-    """``(cam_T_imu, source)`` recorded in ``directory/summary.json`` (a ``vislam run`` or
-    ``vislam demo`` folder) under ``dataset.cam_T_imu``; None when there is no such file.
+@dataclass(frozen=True, eq=False)
+class RunCalibration:
+    """The ``cam_T_imu`` a run folder's summary.json records.
+
+    Attributes:
+        cam_T_imu: (4, 4) the transform the filter used (``calibration.cam_T_imu``) or,
+            in a summary without it, the data file's (``dataset.cam_T_imu``).
+        source: where it came from, for messages (``"PATH (calibration.cam_T_imu, ...)"``).
+        used_by_filter: True when ``cam_T_imu`` is the filter's (``calibration``).
+        file_cam_T_imu: (4, 4) the data file's transform (``dataset.cam_T_imu``), or None.
+    """
+
+    cam_T_imu: np.ndarray
+    source: str
+    used_by_filter: bool
+    file_cam_T_imu: np.ndarray | None = None
+
+
+def _summary_matrix(path: Path, value, key: str) -> np.ndarray:
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or not is_rigid_transform(a):
+        raise ConfigError(f"{path}: {key} is not a 4x4 rigid transform (a list of 4 rows of 4 numbers)")
+    return a
+
+
+def cam_T_imu_from_run_summary(directory) -> RunCalibration | None:
+    """The ``cam_T_imu`` recorded in ``directory/summary.json`` (a ``vislam run``,
+    ``compare`` or ``demo`` folder): ``calibration.cam_T_imu``, the transform the filter
+    used, or in a summary written before it was recorded ``dataset.cam_T_imu``, the data
+    file's; None when there is no such file.
 
     Raises:
-        ConfigError: the file exists but is not readable JSON, lacks
-            ``dataset.cam_T_imu``, or that is not a 4x4 rigid transform (the message
-            names the file and the key).
+        ConfigError: the file exists but is not readable JSON, has neither key, or one
+            is not a 4x4 rigid transform (the message names the file and the key).
     """
     path = Path(directory) / RUN_SUMMARY_FILE
     if not path.is_file():
@@ -170,21 +240,27 @@ def cam_T_imu_from_run_summary(directory) -> tuple[np.ndarray, str] | None:
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not valid JSON"
         raise ConfigError(f"{path}: cannot be read ({reason}); a vislam run summary was expected") from None
     dataset = content.get("dataset") if isinstance(content, dict) else None
-    raw = dataset.get("cam_T_imu") if isinstance(dataset, dict) else None
-    if raw is None:
+    calibration = content.get("calibration") if isinstance(content, dict) else None
+    raw_file = dataset.get("cam_T_imu") if isinstance(dataset, dict) else None
+    file_cam_T_imu = _summary_matrix(path, raw_file, "dataset.cam_T_imu") if raw_file is not None else None
+    if isinstance(calibration, dict) and calibration.get("cam_T_imu") is not None:
+        used = _summary_matrix(path, calibration["cam_T_imu"], "calibration.cam_T_imu")
+        corrected = file_cam_T_imu is None or not np.allclose(used, file_cam_T_imu, rtol=0, atol=1e-12)
+        what = "the transform the filter used" + (", corrected from the data file's" if corrected and
+                                                   file_cam_T_imu is not None else "")
+        return RunCalibration(used, f"{path} (calibration.cam_T_imu, {what})", True, file_cam_T_imu)
+    if file_cam_T_imu is None:
         recorded = dataset.get("path") if isinstance(dataset, dict) else None
         hint = f"--dataset {recorded}" if recorded else "--dataset DATA"
         raise ConfigError(
-            f"{path}: no key dataset.cam_T_imu (written by an older vislam?); pass {hint} to convert the "
-            "camera ground truth, or --gt-frame imu if it holds IMU poses"
+            f"{path}: no key calibration.cam_T_imu or dataset.cam_T_imu (written by an older vislam?); pass {hint} "
+            "to convert the camera ground truth, or --gt-frame imu if it holds IMU poses"
         )
-    try:
-        cam_T_imu = np.array(raw, dtype=np.float64)
-    except (TypeError, ValueError):
-        cam_T_imu = None
-    if cam_T_imu is None or not is_rigid_transform(cam_T_imu):
-        raise ConfigError(f"{path}: dataset.cam_T_imu is not a 4x4 rigid transform (a list of 4 rows of 4 numbers)")
-    return cam_T_imu, f"{path} (dataset.cam_T_imu)"
+    logger.warning("%s records no calibration.cam_T_imu (written by an older vislam): converting the camera ground "
+                   "truth with dataset.cam_T_imu, the data file's transform, which the filter used only if no "
+                   "correction changed it", path)
+    return RunCalibration(file_cam_T_imu, f"{path} (dataset.cam_T_imu, the data file's transform; this summary "
+                          "records no calibration.cam_T_imu)", False, file_cam_T_imu)
 
 
 def resolve_ground_truth_frame(
@@ -199,9 +275,11 @@ def resolve_ground_truth_frame(
     """Decide the body frame of a ground truth and, for the camera, find ``cam_T_imu``.
 
     ``frame="auto"`` takes the format's convention (:func:`default_gt_frame`: KITTI ->
-    ``"cam"``, TUM -> ``"imu"``). For ``"cam"``, ``cam_T_imu`` is the one given (the
-    dataset's), else the one recorded in the ``summary.json`` next to ``estimate_path``
-    (:func:`cam_T_imu_from_run_summary`).
+    ``"cam"``, TUM -> ``"imu"``). For ``"cam"``, ``cam_T_imu`` is, in this order: the one
+    the filter used, recorded in the ``summary.json`` next to ``estimate_path``
+    (:func:`cam_T_imu_from_run_summary`) — with ``cam_T_imu`` given (the dataset's), only
+    when that summary's data-file transform is the same (the run is of this dataset);
+    else the one given; else the summary's data-file transform (older summaries).
 
     Raises:
         ConfigError: unknown format or frame; a camera ground truth without any
@@ -215,8 +293,16 @@ def resolve_ground_truth_frame(
         if not is_rigid_transform(cam_T_imu):
             raise ConfigError(f"cam_T_imu{f' of {cam_T_imu_source}' if cam_T_imu_source else ''} is not a 4x4 rigid "
                               "transform")
-        return GroundTruthFrame("cam", frame, fmt, np.array(cam_T_imu, dtype=np.float64),
-                                cam_T_imu_source or "the caller")
+        given = np.array(cam_T_imu, dtype=np.float64)
+        source = cam_T_imu_source or "the caller"
+        run = _run_calibration_quiet(estimate_path)
+        if run is not None and run.used_by_filter:
+            if run.file_cam_T_imu is not None and np.allclose(run.file_cam_T_imu, given, rtol=0, atol=1e-9):
+                return GroundTruthFrame("cam", frame, fmt, run.cam_T_imu, run.source)
+            logger.warning("%s records another data-file cam_T_imu than %s; using %s's", run.source, source, source)
+        elif run is not None and not np.allclose(run.cam_T_imu, given, rtol=0, atol=1e-9):
+            logger.warning("%s records another cam_T_imu than %s; using %s's", run.source, source, source)
+        return GroundTruthFrame("cam", frame, fmt, given, source)
     what = f"{ground_truth_path}: " if ground_truth_path is not None else ""
     why = ("KITTI ground truth holds left-camera poses by the format's convention" if frame == "auto"
            else "camera-frame ground truth")
@@ -229,7 +315,18 @@ def resolve_ground_truth_frame(
             f"{what}{why} and needs cam_T_imu, but no dataset was given and {directory / RUN_SUMMARY_FILE} does not "
             "exist; pass --dataset DATA (the estimate's dataset), or --gt-frame imu if the file holds IMU poses"
         )
-    return GroundTruthFrame("cam", frame, fmt, found[0], found[1])
+    return GroundTruthFrame("cam", frame, fmt, found.cam_T_imu, found.source)
+
+
+def _run_calibration_quiet(estimate_path) -> RunCalibration | None:
+    """The run summary's calibration next to ``estimate_path``, or None (no estimate, no
+    summary, or an unreadable one: a dataset was given, so the summary is not needed)."""
+    if estimate_path is None:
+        return None
+    try:
+        return cam_T_imu_from_run_summary(Path(estimate_path).resolve().parent)
+    except ConfigError:
+        return None
 
 
 def load_ground_truth(path, fmt: str = "kitti", frame: str = "auto", cam_T_imu=None,
@@ -467,6 +564,11 @@ class EvaluationResult:
         timestamps_s: (n,) times of the pairs, or None.
         notes: warnings about the evaluation (e.g. a metric that could not be computed).
         info: provenance (files, association), copied into :meth:`to_dict`.
+        camera: where the ground truth holds left-camera poses, the same evaluation of the
+            camera frame (the estimate as ``world_T_imu @ imu_T_cam`` with the calibration
+            used, against the ground truth's camera poses as they are; its ``*_world_T_imu``
+            arrays hold camera poses), else None.
+        cam_T_imu: (4, 4) the calibration the camera frame was evaluated with, else None.
     """
 
     n_frames_compared: int
@@ -488,6 +590,8 @@ class EvaluationResult:
     timestamps_s: np.ndarray | None = None
     notes: tuple[str, ...] = ()
     info: Mapping[str, Any] = field(default_factory=dict)
+    camera: "EvaluationResult | None" = None
+    cam_T_imu: np.ndarray | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able summary (NaN becomes None, see :func:`write_metrics_json`).
@@ -497,7 +601,12 @@ class EvaluationResult:
         ``rpe_rot_*_deg``, ``rpe_trans_100m_*_m``, ``rpe_rot_100m_*_deg``),
         ``kitti_t_pct``, ``kitti_r_deg_per_100m``, ``kitti_segments``,
         ``kitti_by_length`` (length in m -> t_pct, r_deg_per_100m, segments),
-        ``n_frames_compared``, ``path_length_m``, ``notes`` and the ``info`` entries.
+        ``n_frames_compared``, ``path_length_m``, ``notes`` and the ``info`` entries —
+        all of the IMU frame. The camera frame (:attr:`camera`; None without camera
+        ground truth): ``cam_ape_rmse_m``, ``cam_ape_mean_m``, ``cam_ape_median_m``,
+        ``cam_ape_max_m``, ``cam_ape_std_m``, ``cam_ape_unaligned_rmse_m``,
+        ``cam_kitti_t_pct``, ``cam_kitti_r_deg_per_100m``, ``cam_kitti_segments``,
+        ``cam_T_imu_evaluated`` and ``metrics_frames`` (what the two sets mean).
         """
         out: dict[str, Any] = {
             "n_frames_compared": int(self.n_frames_compared),
@@ -527,10 +636,27 @@ class EvaluationResult:
                                        k.n_segments_by_length)
         }
         out["alignment_gt_world_T_est_world"] = self.alignment.tolist()
-        out["notes"] = list(self.notes)
+        c = self.camera
+        for stat in ("rmse", "mean", "median", "max", "std"):
+            out[f"{CAMERA_PREFIX}ape_{stat}_m"] = float(getattr(c.ape, stat)) if c is not None else None
+        out[f"{CAMERA_PREFIX}ape_unaligned_rmse_m"] = float(c.ape_unaligned.rmse) if c is not None else None
+        out[f"{CAMERA_PREFIX}kitti_t_pct"] = float(c.kitti.t_pct) if c is not None else None
+        out[f"{CAMERA_PREFIX}kitti_r_deg_per_100m"] = float(c.kitti.r_deg_per_100m) if c is not None else None
+        out[f"{CAMERA_PREFIX}kitti_segments"] = int(c.kitti.n_segments) if c is not None else None
+        out["cam_T_imu_evaluated"] = self.cam_T_imu.tolist() if self.cam_T_imu is not None else None
+        out["metrics_frames"] = METRICS_FRAMES if c is not None else METRICS_FRAMES_IMU_ONLY
+        out["notes"] = list(self.notes) + [f"camera frame: {n}" for n in (c.notes if c is not None else ())]
         for key, value in self.info.items():
             out.setdefault(key, value)
         return out
+
+
+#: What the two metric sets of :meth:`EvaluationResult.to_dict` mean (camera ground truth).
+METRICS_FRAMES = ("ape_*, rpe_*, kitti_*: IMU frame (the ground truth's camera poses converted to the IMU with "
+                  "cam_T_imu_evaluated: they depend on that lever arm); cam_ape_*, cam_kitti_*: left-camera frame "
+                  "(the estimate as world_T_imu @ imu_T_cam with cam_T_imu_evaluated, against the ground truth as it "
+                  "is)")
+METRICS_FRAMES_IMU_ONLY = "ape_*, rpe_*, kitti_*: IMU frame (the ground truth holds IMU poses; no camera-frame metrics)"
 
 
 def _check_poses(a, name: str) -> np.ndarray:
@@ -566,6 +692,8 @@ def evaluate(
     timestamps=None,
     *,
     info: Mapping[str, Any] | None = None,
+    gt_world_T_cam=None,
+    cam_T_imu=None,
 ) -> EvaluationResult:
     """Errors of associated estimate / ground-truth poses (same length, frame i with i).
 
@@ -574,7 +702,27 @@ def evaluate(
     SO(3) first (a no-op up to rounding for proper rotations). A metric that cannot be
     computed (a straight-line path cannot be aligned; a path shorter than 100 m has no
     100 m RPE or KITTI segment) is NaN, with a note in ``notes``.
+
+    ``gt_world_T_cam`` (n, 4, 4) — the ground truth's own left-camera poses, of which
+    ``gt_world_T_imu`` is the conversion with ``cam_T_imu`` — adds the camera-frame
+    evaluation (:attr:`EvaluationResult.camera`): ``est_world_T_imu @ imu_T_cam``
+    against ``gt_world_T_cam``.
     """
+    camera = None
+    if gt_world_T_cam is not None:
+        if cam_T_imu is None or not is_rigid_transform(cam_T_imu):
+            raise ValueError("camera-frame evaluation needs the 4x4 rigid cam_T_imu used")
+        cam_T_imu = np.array(cam_T_imu, dtype=np.float64)
+        # world_T_cam = world_T_imu @ imu_T_cam, expressed in the first camera's world frame (as KITTI ground
+        # truth is, when the estimate starts at the identity) by a left factor: the aligned metrics do not
+        # depend on that world frame, the unaligned APE does. The factor is cam_T_imu with its rotation
+        # projected onto SO(3) (the shared files' is orthonormal to 1e-7 only), so that it is exactly rigid
+        # and the aligned metrics are those of world_T_imu @ imu_T_cam to rounding.
+        world_change = _project_rotations(cam_T_imu[None])[0]
+        est_cam = world_change @ _check_poses(est_world_T_imu, "estimate") @ se3_inverse(cam_T_imu)
+        camera = evaluate(est_cam, gt_world_T_cam, timestamps, info={"frame": "left camera"})
+    elif cam_T_imu is not None:
+        cam_T_imu = np.array(cam_T_imu, dtype=np.float64)
     est = _check_poses(est_world_T_imu, "estimate")
     gt = _check_poses(gt_world_T_imu, "ground truth")
     if est.shape[0] != gt.shape[0]:
@@ -655,12 +803,33 @@ def evaluate(
         timestamps_s=ts,
         notes=tuple(notes),
         info=dict(info or {}),
+        camera=camera,
+        cam_T_imu=cam_T_imu,
     )
     logger.info(
         "APE %.4f m (aligned), KITTI %.3f %% / %.4f deg/100 m over %d frames",
         ape_stats.rmse, kitti.t_pct, kitti.r_deg_per_100m, n,
     )
     return result
+
+
+def evaluate_associated(est: TrajectoryFile, gt: TrajectoryFile, dataset_timestamps=None,
+                        max_diff_s: float = DEFAULT_MAX_DIFF_S, *, cam_T_imu=None,
+                        info: Mapping[str, Any] | None = None) -> EvaluationResult:
+    """Associate ``est`` (world_T_imu) with ``gt`` and evaluate.
+
+    ``gt``: IMU poses, or — with ``cam_T_imu`` (the calibration the estimate used) — the
+    ground truth's left-camera poses as they are, converted to the IMU with it for the
+    IMU-frame metrics and compared as they are for the camera-frame ones. The
+    association's info is added to ``info``.
+    """
+    assoc = associate(est, gt, dataset_timestamps, max_diff_s)
+    info = {**(info or {}), "association": assoc.to_dict()}
+    if cam_T_imu is None:
+        return evaluate(assoc.est_world_T_imu, assoc.gt_world_T_imu, assoc.timestamps_s, info=info)
+    gt_cam = assoc.gt_world_T_imu  # camera poses here
+    return evaluate(assoc.est_world_T_imu, camera_to_imu_trajectory(gt_cam, cam_T_imu), assoc.timestamps_s,
+                    info=info, gt_world_T_cam=gt_cam, cam_T_imu=cam_T_imu)
 
 
 def evaluate_files(
@@ -692,33 +861,20 @@ def evaluate_files(
         estimate_path=est_path,
         ground_truth_path=gt_path,
     )
-    if sequence is not None and conversion.frame == "cam":
-        _warn_if_run_summary_disagrees(est_path, conversion)
-    gt = conversion.apply(raw_gt)
-    assoc = associate(est, gt, sequence.timestamps_s if sequence is not None else None, max_diff_s)
+    if conversion.frame == "cam":
+        logger.info("%s: left-camera poses, converted to the IMU with cam_T_imu from %s", gt_path,
+                    conversion.cam_T_imu_source)
     info = {
         "estimate": str(est_path),
         "estimate_format": est.fmt,
         "ground_truth": str(gt_path),
-        "ground_truth_format": gt.fmt,
+        "ground_truth_format": raw_gt.fmt,
         **conversion.to_info(),
         "ground_truth_description": conversion.describe(),
         "dataset": getattr(sequence, "source", None) if sequence is not None else None,
-        "association": assoc.to_dict(),
     }
-    return evaluate(assoc.est_world_T_imu, assoc.gt_world_T_imu, assoc.timestamps_s, info=info)
-
-
-def _warn_if_run_summary_disagrees(est_path, conversion: GroundTruthFrame) -> None:
-    """Log a warning when the run folder of the estimate records another cam_T_imu than
-    the dataset given (the estimate probably comes from another dataset)."""
-    try:
-        found = cam_T_imu_from_run_summary(Path(est_path).resolve().parent)
-    except ConfigError:
-        return
-    if found is not None and not np.allclose(found[0], conversion.cam_T_imu, atol=1e-9):
-        logger.warning("%s records another cam_T_imu than %s; using the dataset's", found[1],
-                       conversion.cam_T_imu_source)
+    return evaluate_associated(est, raw_gt, sequence.timestamps_s if sequence is not None else None, max_diff_s,
+                               cam_T_imu=conversion.cam_T_imu if conversion.frame == "cam" else None, info=info)
 
 
 # ----------------------------------------------------------------------------- output
@@ -753,25 +909,37 @@ def format_table(result: EvaluationResult) -> str:
         lines.append(f"ground truth: {description}")
     lines.append(f"ground-truth path length: {r.path_length_m:.2f} m")
     lines.append("")
-    w = 38
+    c = r.camera
+    w = 50 if c is not None else 38
+    if c is not None:
+        lines.append("IMU frame: the estimate against the ground truth converted to the IMU with cam_T_imu (depends "
+                     "on its lever arm); camera frame: the estimate as left-camera poses (world_T_imu @ imu_T_cam) "
+                     "against the ground truth as it is")
     lines.append(f"{'metric':<{w}}{'rmse':>10}{'mean':>10}{'median':>10}{'max':>10}{'std':>10}")
-    rows = (
-        ("APE translation, SE(3)-aligned (m)", r.ape),
-        ("APE translation, not aligned (m)", r.ape_unaligned),
-        ("RPE translation, 1 frame (m)", r.rpe_trans),
-        ("RPE rotation, 1 frame (deg)", r.rpe_rot),
-        (f"RPE translation, {RPE_DISTANCE_M:g} m (m)", r.rpe_trans_100m),
-        (f"RPE rotation, {RPE_DISTANCE_M:g} m (deg)", r.rpe_rot_100m),
+    imu = "IMU frame: " if c is not None else ""
+    rows = ((("camera frame: APE translation, SE(3)-aligned (m)", c.ape),
+             ("camera frame: APE translation, not aligned (m)", c.ape_unaligned)) if c is not None else ()) + (
+        (f"{imu}APE translation, SE(3)-aligned (m)", r.ape),
+        (f"{imu}APE translation, not aligned (m)", r.ape_unaligned),
+        (f"{imu}RPE translation, 1 frame (m)", r.rpe_trans),
+        (f"{imu}RPE rotation, 1 frame (deg)", r.rpe_rot),
+        (f"{imu}RPE translation, {RPE_DISTANCE_M:g} m (m)", r.rpe_trans_100m),
+        (f"{imu}RPE rotation, {RPE_DISTANCE_M:g} m (deg)", r.rpe_rot_100m),
     )
     for label, s in rows:
         lines.append(f"{label:<{w}}" + "".join(f"{_fmt(getattr(s, k)):>10}"
                                               for k in ("rmse", "mean", "median", "max", "std")))
     k = r.kitti
     lines.append("")
+    if c is not None and c.kitti.has_segments:
+        lines.append(
+            f"KITTI odometry, camera frame ({c.kitti.n_segments} segments): translation "
+            f"{_fmt(c.kitti.t_pct, '.3f')} %, rotation {_fmt(c.kitti.r_deg_per_100m, '.4f')} deg/100 m"
+        )
     if k.has_segments:
         lines.append(
-            f"KITTI odometry ({k.n_segments} segments): translation {_fmt(k.t_pct, '.3f')} %, "
-            f"rotation {_fmt(k.r_deg_per_100m, '.4f')} deg/100 m"
+            f"KITTI odometry{', IMU frame' if c is not None else ''} ({k.n_segments} segments): translation "
+            f"{_fmt(k.t_pct, '.3f')} %, rotation {_fmt(k.r_deg_per_100m, '.4f')} deg/100 m"
         )
         lines.append(f"{'length (m)':>12}{'segments':>10}{'t (%)':>10}{'r (deg/100 m)':>16}")
         for length, n, t, rot in zip(k.lengths_m, k.n_segments_by_length, k.t_pct_by_length,
@@ -802,6 +970,14 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
         ax1.plot(d, r.unaligned_position_error_m, color="tab:blue", lw=1.2, label="not aligned")
         ax1.set_title("APE translation, not aligned (alignment impossible)", fontsize=10)
         ax1.legend(loc="upper left", fontsize=9)
+    elif r.camera is not None:  # camera ground truth: both frames
+        c = r.camera
+        ax1.plot(c.distance_along_gt_m, c.aligned_position_error_m, color="tab:green", lw=1.2,
+                 label=f"left camera (RMSE {c.ape.rmse:.3f} m)")
+        ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.0, alpha=0.8,
+                 label=f"IMU, ground truth converted with cam_T_imu (RMSE {r.ape.rmse:.3f} m)")
+        ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10)
+        ax1.legend(loc="upper left", fontsize=9)
     else:
         ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.2, label="per frame")
         ax1.axhline(r.ape.rmse, color="tab:red", ls="--", lw=1.0, label=f"RMSE {r.ape.rmse:.3f} m")
@@ -823,9 +999,12 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
         has = k.n_segments_by_length > 0
         ax2.plot(lengths[has], k.t_pct_by_length[has], "o-", color="tab:orange", lw=1.5, ms=5,
                  label="mean per length", zorder=3)
+        frame = "IMU" if r.camera is not None else ""
+        cam = (f"; camera {r.camera.kitti.t_pct:.2f} %" if r.camera is not None and r.camera.kitti.has_segments
+               else "")
         ax2.set_title(
-            f"KITTI odometry error: {k.t_pct:.2f} % translation, {k.r_deg_per_100m:.3f} deg/100 m rotation "
-            f"({k.n_segments} segments)", fontsize=10)
+            f"KITTI odometry error{f' ({frame})' if frame else ''}: {k.t_pct:.2f} % translation, "
+            f"{k.r_deg_per_100m:.3f} deg/100 m rotation ({k.n_segments} segments){cam}", fontsize=10)
         ax2.legend(loc="upper right", fontsize=9)
         ax2.set_ylim(bottom=0)
     else:

@@ -21,10 +21,14 @@ Files (all in the output directory ``DIR``):
   left-camera poses, by the KITTI convention, as the shared data's ``groundtruth/*.txt``)
   and ``localization.tum`` (the dead-reckoning trajectory, for comparison).
 
-``summary.json`` records the dataset's ``cam_T_imu`` (4x4 list) under
-``dataset.cam_T_imu`` when the caller gives it in ``dataset`` (``vislam run``,
-``compare``, ``demo`` and ``report`` do): ``vislam eval`` takes it from there to convert
-camera ground truth when no dataset is given.
+``summary.json`` records under ``calibration`` the IMU-camera transform the filter used
+(``calibration.cam_T_imu``, after every correction: a ``cam_T_imu`` override in the
+options, ``--auto``'s rotation correction), the data file's (``calibration.file_cam_T_imu``)
+and the corrections that made the one from the other (``calibration.corrections``: field,
+value, effect, source), from the result's :attr:`~vislam.core.results.RunResult.calibration`.
+``vislam eval`` takes ``calibration.cam_T_imu`` from there to convert camera ground truth.
+``dataset.cam_T_imu`` (when the caller gives it in ``dataset``: ``vislam run``,
+``compare``, ``demo`` and ``report`` do) is the data file's transform, as recorded.
 
 Atomicity: an :class:`OutputStage` writes every file into a hidden staging directory
 inside ``DIR`` and, once all are complete, renames them onto their final names
@@ -341,7 +345,8 @@ def build_summary(result: RunResult, *, dataset: Mapping[str, Any], duration_s: 
     ``duration_s`` (of the recording), ``real_time_factor`` (filter_seconds / duration of
     the frames processed; < 1 is faster than real time), ``partial``, ``error``,
     ``outputs``, ``imu_bias`` (mean, RMS and final b̂ of the SLAM filter's IMU-error state,
-    when on) and the entries of ``extra``. Non-finite numbers become null on writing.
+    when on), ``calibration`` (the cam_T_imu the filter used, the file's, the corrections;
+    see the module docstring) and the entries of ``extra``. Non-finite numbers become null on writing.
     """
     from vislam import __version__
 
@@ -360,6 +365,8 @@ def build_summary(result: RunResult, *, dataset: Mapping[str, Any], duration_s: 
     s["partial"] = bool(result.partial)
     s["error"] = result.error
     s["outputs"] = list(outputs)
+    if result.calibration is not None:
+        s["calibration"] = _calibration_record(result, (extra or {}).get("auto"))
     bias = result.extra.get("imu_bias") if result.extra else None
     if bias is not None and len(bias):  # the SLAM filter's IMU-error state (b_v m/s, b_ω rad/s)
         b = np.asarray(bias)
@@ -368,6 +375,20 @@ def build_summary(result: RunResult, *, dataset: Mapping[str, Any], duration_s: 
     if extra:
         s.update(extra)
     return s
+
+
+def _calibration_record(result: RunResult, auto: Mapping[str, Any] | None) -> dict[str, Any]:
+    """summary.json's ``calibration``: :meth:`CalibrationUsed.to_dict` with the source of
+    each correction (``vislam check``'s suggestion under ``--auto`` when it suggested that
+    very value, else the filter options: an options file)."""
+    record = result.calibration.to_dict()
+    suggested = (auto or {}).get("suggested") or {}
+    for c in record["corrections"]:
+        value = suggested.get(c["field"])
+        same = value is not None and np.allclose(np.asarray(value, dtype=np.float64),
+                                                 np.asarray(c["value"], dtype=np.float64), rtol=0, atol=1e-12)
+        c["source"] = "vislam check's suggestion (--auto)" if same else "the filter options (options file)"
+    return record
 
 
 def absolute_trajectory_error(est_world_T_imu: np.ndarray, gt_world_T_imu: np.ndarray) -> float | None:

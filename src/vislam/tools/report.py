@@ -264,6 +264,10 @@ class ReportRow:
     error: str | None = None
     #: Median estimation time per frame (ms; refine: the smoother's frames).
     frame_ms_median: float | None = None
+    #: Camera ground truth: ATE (m) and KITTI t (%) of the left-camera poses (the estimate
+    #: as world_T_imu @ imu_T_cam with the calibration used, against the ground truth as it is).
+    cam_ate_m: float | None = None
+    cam_kitti_t_pct: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -295,6 +299,7 @@ def _row(section: str, dataset: str, method: str, result: RunResult, evaluation,
     lm = result.landmarks
     seconds = st.filter_seconds + float((result.extra.get("timing") or {}).get("refine_seconds") or 0.0)
     fs = np.asarray(st.frame_seconds)
+    camera = getattr(evaluation, "camera", None)
     return ReportRow(
         section, dataset, method, added, filter_noise, st.frames, st.frames_processed,
         len(lm) if lm is not None else None, int(np.count_nonzero(lm.status)) if lm is not None else None,
@@ -302,7 +307,9 @@ def _row(section: str, dataset: str, method: str, result: RunResult, evaluation,
         _finite(evaluation.kitti.t_pct) if evaluation is not None else None,
         _finite(evaluation.kitti.r_deg_per_100m) if evaluation is not None else None,
         seconds, seconds / processed if processed > 0 else None, directory,
-        bool(result.partial), result.error, float(np.median(fs) * 1e3) if fs.size else None)
+        bool(result.partial), result.error, float(np.median(fs) * 1e3) if fs.size else None,
+        _finite(camera.ape.rmse) if camera is not None else None,
+        _finite(camera.kitti.t_pct) if camera is not None else None)
 
 
 def _comparison_rows(section: str, dataset: str, comparison: Comparison, directory: str) -> list[ReportRow]:
@@ -451,13 +458,15 @@ def _landmarks(row: ReportRow) -> str:
     return f"{row.landmarks}" + (f" ({row.landmarks_rejected} rej.)" if row.landmarks_rejected else "")
 
 
-SUMMARY_HEADER = ["Section", "Dataset", "Method", "Added noise", "Filter noise", "Frames", "Landmarks", "ATE (m)",
-                  "KITTI t (%)", "KITTI r (deg/100 m)", "Filter time (s)", "RTF"]
+SUMMARY_HEADER = ["Section", "Dataset", "Method", "Added noise", "Filter noise", "Frames", "Landmarks",
+                  "Camera ATE (m)", "Camera KITTI t (%)", "IMU ATE (m)", "KITTI t (%)", "KITTI r (deg/100 m)",
+                  "Filter time (s)", "RTF"]
 
 
 def _summary_cells(row: ReportRow) -> list[str]:
     method = row.method + (" (partial)" if row.partial else "")
     return [row.section, row.dataset, method, row.added_noise, row.filter_noise, _frames(row), _landmarks(row),
+            _n(row.cam_ate_m, ".2f"), _n(row.cam_kitti_t_pct, ".2f"),
             _n(row.ate_m, ".2f"), _n(row.kitti_t_pct, ".2f"), _n(row.kitti_r_deg_per_100m, ".3f"),
             _n(row.filter_seconds, ".2f"), _n(row.real_time_factor, ".2g")]
 
@@ -627,15 +636,13 @@ def _comparison_task(sequence, ground_truth_path, ground_truth, ground_truth_inf
                      methods=EKF_METHODS) -> Comparison:
     """One comparison of the report, run and written into ``directory`` (a task): the
     options from the dataset's ``check`` record (and ``told``), the check's data
-    corrections applied (the camera ground truth converted with the corrected cam_T_imu)."""
+    corrections applied (the camera ground truth converted with each run's calibration, the
+    corrected cam_T_imu: :func:`vislam.tools.comparison.evaluate_run`)."""
     options = _dataset_options(check, told)
     if options.has_data_corrections:
         from vislam.core.corrections import apply_corrections
 
         sequence = apply_corrections(sequence, options)
-        if ground_truth_path is not None:
-            ground_truth = load_run_ground_truth(ground_truth_path, sequence, "kitti", "cam")
-        dataset = {**dataset, "cam_T_imu": sequence.cam_T_imu.tolist()}
     comparison = run_comparison(sequence, options, noise=noise, ground_truth=ground_truth,
                                 ground_truth_info=ground_truth_info, dataset=dataset, methods=methods, auto=check)
     write_comparison(directory, comparison, start_time=start_time)
@@ -740,8 +747,13 @@ class _ReportBuilder:
                          describe_suggestions(auto), describe_filter_noise(d.options)])
         doc.table(["Dataset", "Frames", "Duration (s)", "Landmarks", "Obs./frame", "Ground truth", "vislam check",
                    "Applied (check's suggestions)", "Filter noise"], rows, "lrrrrllll")
-        doc.p("Ground truth (`groundtruth/<stem>.txt`, KITTI format) holds left-camera poses; it is converted to the "
-              "IMU with each dataset's `cam_T_imu`. ATE is the RMSE of the IMU position after SE(3) Umeyama "
+        doc.p("Ground truth (`groundtruth/<stem>.txt`, KITTI format) holds left-camera poses. Camera ATE: the "
+              "estimate turned into left-camera poses with the `cam_T_imu` its filter used (world_T_cam = "
+              "world_T_imu · imu_T_cam, after every correction; each run's summary.json records it under "
+              "`calibration`), against the ground truth as it is — no transform enters the comparison twice, so "
+              "it does not depend on the lever arm being right. IMU ATE: the ground truth converted to the IMU "
+              "with that same `cam_T_imu`, against the IMU estimate; a wrong lever arm turns every rotation error "
+              "into a position error there. Both are the position RMSE after SE(3) Umeyama "
               "alignment (evo); KITTI t and r are the odometry benchmark's average translational (%) and rotational "
               "(deg/100 m) drift over 100–800 m segments. Every dataset is checked first (`vislam check`, as "
               "`vislam run --auto`): its runs use the check's suggestions — IMU noise per axis, gyro bias, "
@@ -774,11 +786,12 @@ class _ReportBuilder:
             doc.h(3, d.label)
             doc.p(f"Options from `vislam check`: {describe_suggestions(d.auto)}; filter noise "
                   f"{describe_filter_noise(d.options)}.")
-            doc.table(["Method", "Frames", "Landmarks", "ATE (m)", "KITTI t (%)", "KITTI r (deg/100 m)",
-                       "Time (s)", "ms/frame", "RTF", "Folder"],
-                      [[r.method, _frames(r), _landmarks(r), _n(r.ate_m, ".2f"), _n(r.kitti_t_pct, ".2f"),
+            doc.table(["Method", "Frames", "Landmarks", "Camera ATE (m)", "Camera KITTI t (%)", "IMU ATE (m)",
+                       "KITTI t (%)", "KITTI r (deg/100 m)", "Time (s)", "ms/frame", "RTF", "Folder"],
+                      [[r.method, _frames(r), _landmarks(r), _n(r.cam_ate_m, ".2f"), _n(r.cam_kitti_t_pct, ".2f"),
+                        _n(r.ate_m, ".2f"), _n(r.kitti_t_pct, ".2f"),
                         _n(r.kitti_r_deg_per_100m, ".3f"), _n(r.filter_seconds, ".2f"), _n(r.frame_ms_median, ".2f"),
-                        _n(r.real_time_factor, ".2g"), f"`{r.directory}/`"] for r in new], "lrrrrrrrrl")
+                        _n(r.real_time_factor, ".2g"), f"`{r.directory}/`"] for r in new], "lrrrrrrrrrrl")
             self.add_figures(_method_figs(directory, comparison, d.label))
             self.add_figures([(f"{directory}/{COMPARISON_FIGURE}", f"{d.label}: every method"
                                + (" and the ground truth" if d.ground_truth is not None else ""))]
@@ -821,16 +834,18 @@ class _ReportBuilder:
                     sep, slam = new = _comparison_rows("noise", d.label, comparison, directory)
                     self.rows += new
                     bars.append((added.replace(", ", "\n") + f"\nfilter {tag}", sep.ate_m, slam.ate_m))
-                    table.append([added, f"{tag}: {describe_filter_noise(options)}", _n(sep.ate_m, ".2f"),
+                    table.append([added, f"{tag}: {describe_filter_noise(options)}", _n(sep.cam_ate_m, ".2f"),
+                                  _n(slam.cam_ate_m, ".2f"), _n(sep.ate_m, ".2f"),
                                   _n(slam.ate_m, ".2f"), _n(sep.kitti_t_pct, ".2f"), _n(slam.kitti_t_pct, ".2f"),
                                   _landmarks(sep), _landmarks(slam), f"`{directory}/`"])
                     figs.append((f"{directory}/{COMPARISON_FIGURE}", f"{d.label}, added noise {added}, filter "
                                  f"{'told the added noise' if told else 'at its defaults'}"))
             doc.h(3, d.label)
             if table:
-                doc.table(["Added noise", "Filter noise", "ATE separately (m)", "ATE SLAM (m)",
+                doc.table(["Added noise", "Filter noise", "Camera ATE separately (m)", "Camera ATE SLAM (m)",
+                           "IMU ATE separately (m)", "IMU ATE SLAM (m)",
                            "KITTI t separately (%)", "KITTI t SLAM (%)", "Landmarks separately", "Landmarks SLAM",
-                           "Folder"], table, "llrrrrrrl")
+                           "Folder"], table, "llrrrrrrrrl")
             self.add_figures(figs)
             if d.ground_truth is not None and bars:
                 panels.append((d.label, [b[0] for b in bars], {"separate": [b[1] for b in bars],
@@ -863,11 +878,12 @@ class _ReportBuilder:
     def summary_section(self) -> None:
         doc = self.doc
         doc.h(2, "4. Summary")
-        doc.p("Every run of this report. ATE: RMSE of the IMU position after SE(3) alignment (m); KITTI t/r: "
+        doc.p("Every run of this report. Camera ATE / IMU ATE: RMSE of the left-camera / IMU position after SE(3) "
+              "alignment (m; see Data); Camera KITTI t: the KITTI metric of the camera poses; KITTI t/r (IMU frame): "
               "average translational (%) and rotational (deg/100 m) drift over 100–800 m segments; n/a without "
               "ground truth. Filter time: estimation only (\"separately\" includes the localization); RTF: filter "
               "time / recording duration (< 1 is faster than real time).")
-        doc.table(SUMMARY_HEADER, [_summary_cells(r) for r in self.rows], "lllllrrrrrrr")
+        doc.table(SUMMARY_HEADER, [_summary_cells(r) for r in self.rows], "lllllrrrrrrrrr")
         if self.notes:
             doc.h(2, "Notes")
             doc.items(self.notes)

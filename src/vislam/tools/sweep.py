@@ -5,7 +5,7 @@ A sweep SPEC (YAML or TOML) lists::
     datasets:                       # each: path, optional name, groundtruth, gt_format, gt_frame
       - path: ../shared/data/sparse/0020.npz
         groundtruth: ../shared/data/groundtruth/0020.txt
-        gt_frame: cam                 # the shared KITTI ground truth holds left-camera poses
+        gt_frame: auto                # the default: the format's convention (KITTI: left camera, TUM: IMU)
       - {path: ../shared/data/sparse/0042.npz}      # no ground truth: no ATE/KITTI columns
     modes: [slam, localization]     # default [slam]
     options:                        # named FilterOptions sets (default: {default: {}})
@@ -25,7 +25,12 @@ one-line :class:`~vislam.errors.ConfigError` naming the SPEC file and the key.
 
 One cell (:func:`run_cell`, engine-independent, no output files): load the dataset,
 check the ground truth against it, inject the noise (:func:`vislam.core.noise.inject_noise`,
-the ``--add-*`` flags of ``vislam run``), run the estimator, evaluate. It returns a row
+the ``--add-*`` flags of ``vislam run``), run the estimator, evaluate. A dataset's
+``gt_frame`` defaults to ``auto``, the format's convention as in ``vislam eval`` and
+``vislam run --gt`` (KITTI: left-camera poses; TUM: IMU poses); the frame used is the
+row's ``gt_frame``. Camera ground truth is converted with the ``cam_T_imu`` the cell's
+filter used (an option set's ``cam_T_imu`` or rotation correction included), and also
+evaluated in the camera frame (``cam_ate_m``, ``cam_kitti_*``). It returns a row
 (a dict of :data:`COLUMNS`) and never raises for a problem of the cell: a bad path, a
 mismatched ground truth, a filter failure or a bug become ``status = "error"`` with the
 message in ``error``.
@@ -70,7 +75,7 @@ from vislam.core.noise import NoiseSpec
 from vislam.core.options import MODES, FilterOptions
 from vislam.errors import ConfigError, OutputError, VislamError
 from vislam.tools.config import _one_line, read_config_document
-from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAMES
+from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAME_CHOICES, default_gt_frame
 
 __all__ = ["SweepSpec", "DatasetEntry", "Cell", "COLUMNS", "KEY_COLUMNS", "RESULTS_FILE", "SUMMARY_FIGURE",
            "SweepResult", "load_spec", "parse_spec", "run_cell", "run_sweep", "read_results", "cell_key",
@@ -90,7 +95,10 @@ COLUMNS = KEY_COLUMNS + (
     "status",                 # ok | partial (the filter stopped early; metrics on its frames) | error
     "error",                  # one-line message (error, or why a run is partial)
     "frames", "frames_processed",
-    "ate_m",                  # SE(3)-aligned position RMSE vs ground truth (m); empty without ground truth
+    "gt_frame",               # body frame the ground truth was read as: cam (left camera) | imu; empty without
+    "cam_ate_m",              # camera ground truth: SE(3)-aligned RMSE of the left-camera position (m), the
+    "cam_kitti_t_pct", "cam_kitti_r_deg_per_100m",  # estimate as world_T_imu @ imu_T_cam (calibration used)
+    "ate_m",                  # IMU frame: SE(3)-aligned position RMSE vs ground truth (m); empty without it
     "ape_unaligned_rmse_m",
     "kitti_t_pct", "kitti_r_deg_per_100m", "kitti_segments",
     "n_frames_compared",
@@ -122,7 +130,13 @@ class DatasetEntry:
     path: str
     groundtruth: str | None = None
     gt_format: str = "kitti"
-    gt_frame: str = "imu"
+    #: "auto" (the format's convention: KITTI -> cam, TUM -> imu), "cam" or "imu".
+    gt_frame: str = "auto"
+
+    @property
+    def resolved_gt_frame(self) -> str:
+        """The ground truth's body frame: ``gt_frame``, or the format's convention for "auto"."""
+        return default_gt_frame(self.gt_format) if self.gt_frame == "auto" else self.gt_frame
 
 
 @dataclass(frozen=True)
@@ -144,6 +158,7 @@ class Cell:
     def settings(self) -> dict[str, str]:
         """What a row must match besides the key to count as this cell's result."""
         return {"dataset_path": self.dataset.path, "groundtruth_path": self.dataset.groundtruth or "",
+                "gt_frame": self.dataset.resolved_gt_frame if self.dataset.groundtruth else "",
                 "options_values": _json(self.options), "noise_values": _json(self.noise)}
 
 
@@ -246,9 +261,9 @@ def parse_spec(raw: Any, source: str = "spec", base_dir=None) -> SweepSpec:
         fmt = item.get("gt_format", "kitti")
         if fmt not in GT_FORMATS:
             raise ConfigError(f"{where}.gt_format: expected one of {', '.join(GT_FORMATS)}, got {fmt!r}")
-        frame = item.get("gt_frame", "imu")
-        if frame not in GT_FRAMES:
-            raise ConfigError(f"{where}.gt_frame: expected one of {', '.join(GT_FRAMES)}, got {frame!r}")
+        frame = item.get("gt_frame", "auto")
+        if frame not in GT_FRAME_CHOICES:
+            raise ConfigError(f"{where}.gt_frame: expected one of {', '.join(GT_FRAME_CHOICES)}, got {frame!r}")
         if gt is None and ("gt_format" in item or "gt_frame" in item):
             raise ConfigError(f"{where}: gt_format/gt_frame given without a groundtruth file")
         if any(d.name == name for d in datasets):
@@ -369,7 +384,7 @@ def _compute_cell(cell: Cell) -> dict[str, Any]:
 
     d = cell.dataset
     sequence = load_sequence(d.path)
-    gt = load_run_ground_truth(d.groundtruth, sequence, d.gt_format, d.gt_frame) if d.groundtruth else None
+    gt = load_run_ground_truth(d.groundtruth, sequence, d.gt_format, d.resolved_gt_frame) if d.groundtruth else None
     noise = NoiseSpec(**cell.noise, seed=cell.seed)
     if not noise.is_zero:
         sequence, _ = inject_noise(sequence, noise)
@@ -392,6 +407,10 @@ def _compute_cell(cell: Cell) -> dict[str, Any]:
         ev = evaluate_run(result, gt, sequence).to_dict()
         out.update({k: _finite(ev.get(k)) for k in ("ape_unaligned_rmse_m", "kitti_t_pct", "kitti_r_deg_per_100m")})
         out["ate_m"] = _finite(ev.get("ape_rmse_m"))
+        out["gt_frame"] = d.resolved_gt_frame
+        out["cam_ate_m"] = _finite(ev.get("cam_ape_rmse_m"))
+        out["cam_kitti_t_pct"] = _finite(ev.get("cam_kitti_t_pct"))
+        out["cam_kitti_r_deg_per_100m"] = _finite(ev.get("cam_kitti_r_deg_per_100m"))
         out["kitti_segments"] = ev.get("kitti_segments")
         out["n_frames_compared"] = ev.get("n_frames_compared")
     return out
