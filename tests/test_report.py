@@ -189,3 +189,17 @@ def test_every_dataset_runs_with_its_checks_suggestions(tmp_path):
     md = result.markdown_path.read_text()
     assert "Options from `vislam check`: velocity_noise_mps (" in md
     assert "WARN noise" in md
+
+
+def test_slam_beats_separately_says_it_by_each_metric():
+    from types import SimpleNamespace
+
+    from vislam.tools.report import slam_beats_separately
+
+    def row(cam_ate, cam_t, ate=None, t=None):
+        return SimpleNamespace(cam_ate_m=cam_ate, cam_kitti_t_pct=cam_t, ate_m=ate, kitti_t_pct=t)
+
+    # the sparse 0020 case: SLAM worse by ATE, better by KITTI t
+    assert slam_beats_separately(row(13.75, 7.94), row(17.07, 6.08)) == "ATE no, KITTI t yes"
+    assert slam_beats_separately(row(None, None, 3.0, 2.0), row(None, None, 2.0, 1.0)) == "ATE yes, KITTI t yes"
+    assert slam_beats_separately(row(None, None), row(None, None)) == "n/a"

@@ -312,6 +312,21 @@ def _row(section: str, dataset: str, method: str, result: RunResult, evaluation,
         _finite(camera.kitti.t_pct) if camera is not None else None)
 
 
+def slam_beats_separately(separate: "ReportRow", slam: "ReportRow") -> str:
+    """Whether SLAM is better than localization and mapping separately, by ATE and by
+    KITTI t (camera-frame metrics where the ground truth has them, else IMU-frame):
+    ``"ATE yes, KITTI t no"``; ``"n/a"`` without ground truth."""
+    parts = []
+    for name, a, b in (("ATE", separate.cam_ate_m, slam.cam_ate_m), ("KITTI t", separate.cam_kitti_t_pct,
+                                                                      slam.cam_kitti_t_pct)):
+        if a is None or b is None:
+            a, b = (separate.ate_m, slam.ate_m) if name == "ATE" else (separate.kitti_t_pct, slam.kitti_t_pct)
+        if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)):
+            continue
+        parts.append(f"{name} {'yes' if b < a else 'no'}")
+    return ", ".join(parts) if parts else "n/a"
+
+
 def _comparison_rows(section: str, dataset: str, comparison: Comparison, directory: str) -> list[ReportRow]:
     added = describe_noise(comparison.noise, seed=False)
     return [_row(section, dataset, METHOD_SHORT[key], m.result, m.evaluation, added,
@@ -837,15 +852,16 @@ class _ReportBuilder:
                     table.append([added, f"{tag}: {describe_filter_noise(options)}", _n(sep.cam_ate_m, ".2f"),
                                   _n(slam.cam_ate_m, ".2f"), _n(sep.ate_m, ".2f"),
                                   _n(slam.ate_m, ".2f"), _n(sep.kitti_t_pct, ".2f"), _n(slam.kitti_t_pct, ".2f"),
-                                  _landmarks(sep), _landmarks(slam), f"`{directory}/`"])
+                                  slam_beats_separately(sep, slam), _landmarks(sep), _landmarks(slam),
+                                  f"`{directory}/`"])
                     figs.append((f"{directory}/{COMPARISON_FIGURE}", f"{d.label}, added noise {added}, filter "
                                  f"{'told the added noise' if told else 'at its defaults'}"))
             doc.h(3, d.label)
             if table:
                 doc.table(["Added noise", "Filter noise", "Camera ATE separately (m)", "Camera ATE SLAM (m)",
                            "IMU ATE separately (m)", "IMU ATE SLAM (m)",
-                           "KITTI t separately (%)", "KITTI t SLAM (%)", "Landmarks separately", "Landmarks SLAM",
-                           "Folder"], table, "llrrrrrrrrl")
+                           "KITTI t separately (%)", "KITTI t SLAM (%)", "SLAM better?", "Landmarks separately",
+                           "Landmarks SLAM", "Folder"], table, "llrrrrrrlrrl")
             self.add_figures(figs)
             if d.ground_truth is not None and bars:
                 panels.append((d.label, [b[0] for b in bars], {"separate": [b[1] for b in bars],
