@@ -9,7 +9,9 @@ report convention      later convention        content
 =====================  ======================  =================================================
 ``time_stamps``        ``t``                   (1, T) or (T,) seconds, strictly increasing
 ``features``           ``features``            (4, M, T) pixels uL, vL, uR, vR; -1 in all four
-                                               where landmark j is not seen at frame t
+                                               where landmark j is not seen at frame t (a
+                                               signed integer or float dtype: unsigned ones
+                                               cannot hold -1 and are refused)
 ``linear_velocity``    ``linear_velocity``     (3, T) m/s, IMU frame
 ``rotational_velocity`` ``angular_velocity``   (3, T) rad/s, IMU frame
 ``K``                  ``K``                   (3, 3) left intrinsics [[fsu,0,cu],[0,fsv,cv],[0,0,1]]
@@ -50,6 +52,7 @@ from vislam.core.camera import StereoCamera
 from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.sequence import MISSING_PIXEL, Sequence, StereoObservations
 from vislam.errors import DatasetError
+from vislam.text import printable
 from vislam.tools.npz import write_npz
 
 __all__ = [
@@ -303,6 +306,16 @@ class _NpzReader:
         if dt.fields is not None or dt.subdtype is not None or dt.kind not in "iuf":
             raise self.error(header.key, f"has dtype {dt}; expected a real numeric dtype (integer or float)")
 
+    def check_features_dtype(self, header: _Header) -> None:
+        """The features mark an unobserved cell with -1: refuse a dtype that cannot hold it
+        (unsigned integers would turn every missing cell into an "observation" at 65535)."""
+        if header.dtype.kind == "u":
+            raise self.error(
+                header.key,
+                f"has dtype {header.dtype}, which cannot hold -1 (the mark of an unobserved cell); "
+                f"expected a signed integer or float dtype",
+            )
+
     def read_exact(self, fp: _CountingReader, n: int, key: str) -> bytes:
         data = fp.read(n)
         if len(data) != n:
@@ -479,6 +492,7 @@ def _stream_features(reader: _NpzReader, key: str, tkey: str, T: int) -> tuple[S
             raise reader.error(
                 key, f"has shape {_shape_str(shape)}; expected (4, M, T) with T = {T} from '{tkey}'"
             )
+        reader.check_features_dtype(header)
         M = shape[1]
         dtype = header.dtype
         itemsize = dtype.itemsize
@@ -678,7 +692,7 @@ def load_dataset(path, name: str | None = None) -> DatasetFile:
         raise _read_error(path, reader, exc) from exc
     cam_T_imu = transform if keys["transform"] == "cam_T_imu" else se3_inverse(transform)
     sequence = Sequence(
-        name=name if name is not None else path.stem,
+        name=name if name is not None else printable(path.stem),
         timestamps_s=timestamps,
         linear_velocity_in_imu_mps=linear,
         angular_velocity_in_imu_radps=angular,
@@ -736,7 +750,7 @@ class FrameStream:
 
     def __init__(self, path, name: str | None = None):
         self.path = Path(path)
-        self.name = name if name is not None else self.path.stem
+        self.name = name if name is not None else printable(self.path.stem)
         reader = None
         try:
             with _open_zip(self.path) as zf:
@@ -755,6 +769,7 @@ class FrameStream:
         if len(shape) != 3 or shape[0] != 4 or shape[2] != T:
             raise reader.error(keys["features"], f"has shape {_shape_str(shape)}; expected (4, M, T) with T = {T} "
                                f"from '{keys['timestamps']}'")
+        reader.check_features_dtype(header)
         self.n_frames = T
         self.n_landmarks = shape[1]
         self.streams = header.fortran_order
