@@ -520,12 +520,16 @@ def _stream_features(reader: _NpzReader, key: str, tkey: str, T: int) -> tuple[S
 def _stream_c(fp, decode, M: int, T: int, fail_entry) -> StereoObservations:
     """C order: the stream is coordinate-major (all uL in (landmark, frame) order, then vL, ...).
 
+    Memory: the flat positions of the observed cells (8 bytes per observation, from the
+    uL plane) and the observed values, never a landmarks x frames array (a mask of the
+    whole plane cost 1-2 bytes per cell: 0.7 GB for a 10,000-frame drive).
+
     A bad entry is reported as the first one in frame-major order (earliest frame, then
     lowest landmark), as for Fortran order; so the scan continues after a first error.
     """
     plane = M * T
     chunk = max(1, CHUNK_BYTES // 8)
-    mask = None
+    seen_at = None  # (N,) sorted flat positions (landmark * T + frame) of the observed cells
     values: list[np.ndarray] = []
     first: tuple[int, int, int, str] | None = None  # (frame-major rank, j, t, what)
 
@@ -538,7 +542,7 @@ def _stream_c(fp, decode, M: int, T: int, fail_entry) -> StereoObservations:
             first = (int(rank[k]), int(j[k]), int(t[k]), describe(int(bad_idx[k])))
 
     for c in range(4):
-        mask_parts: list[np.ndarray] = []
+        at_parts: list[np.ndarray] = []
         parts: list[np.ndarray] = []
         pos = 0
         while pos < plane:
@@ -548,11 +552,13 @@ def _stream_c(fp, decode, M: int, T: int, fail_entry) -> StereoObservations:
             missing = a == MISSING_PIXEL
             if c == 0:
                 seen = ~missing
-                mask_parts.append(seen)
+                at_parts.append(pos + np.flatnonzero(seen))
                 if not finite.all():
                     note(np.flatnonzero(~finite), pos, a, lambda i: f"{_COORDS[c]} is {a[i]}")
             else:
-                seen = mask[pos : pos + n]
+                lo, hi = np.searchsorted(seen_at, (pos, pos + n))
+                seen = np.zeros(n, dtype=bool)
+                seen[seen_at[lo:hi] - pos] = True
                 # -1 where observed, not -1 where unobserved, or not finite
                 bad = (missing == seen) | ~finite
                 if bad.any():
@@ -568,16 +574,20 @@ def _stream_c(fp, decode, M: int, T: int, fail_entry) -> StereoObservations:
                 parts.append(a[seen])
             pos += n
         if c == 0:
-            mask = np.concatenate(mask_parts) if mask_parts else np.zeros(0, dtype=bool)
-            del mask_parts
+            seen_at = np.concatenate(at_parts) if at_parts else np.zeros(0, dtype=np.int64)
+            del at_parts
         values.append(np.concatenate(parts) if parts else np.zeros(0))
+        del parts
     if first is not None:
         _, j, t, what = first
         raise fail_entry(j, t, what)
-    lm, fr = np.divmod(np.flatnonzero(mask), T)  # landmark-major, the order of `values`
-    del mask
+    lm, fr = np.divmod(seen_at, T)  # landmark-major, the order of `values`
+    del seen_at
     order = np.lexsort((lm, fr))  # frame-major, landmarks increasing within a frame
-    pixels = np.stack(values, axis=1)[order]
+    pixels = np.empty((order.size, 4))
+    for c in range(4):
+        pixels[:, c] = values[c][order]
+        values[c] = None
     offsets = np.zeros(T + 1, dtype=np.int64)
     np.cumsum(np.bincount(fr, minlength=T), out=offsets[1:])
     return StereoObservations(offsets, lm[order], pixels, M)
