@@ -252,7 +252,7 @@ class SmootherFilter(_History):
 
         self.stats = RunStats()
         self._delta = _StatsDelta(self.stats)
-        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats)
+        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats, calibration.camera)
         self._builder = MapBuilder()
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
@@ -353,6 +353,7 @@ class SmootherFilter(_History):
         self._require_healthy()
         tau = _check_dt(dt_s)
         self._pending_odometry = (tau, _twist(linear_velocity, angular_velocity))
+        self._repeated.set_motion(tau, linear_velocity, angular_velocity)
 
     def update(self, ids, pixels) -> FrameStats:
         """Add the frame's pose and observations, update the window, marginalize what

@@ -860,7 +860,7 @@ def summarize_sequence(sequence: Sequence) -> dict:
 
     Keys: name, source, frames, duration_s, mean_frame_rate_hz, frame_interval_s,
     landmarks {total, observed}, observations {total, per_frame {min, mean, max},
-    frames_without}, track_length_frames {min, median, max} (over observed landmarks),
+    frames_without, repeated, repeat_evidence (see StereoObservations.repeat_evidence)}, track_length_frames {min, median, max} (over observed landmarks),
     disparity_px {min, median, max, non_positive}, row_mismatch_px {max} (|vL - vR|),
     speed_mps {min, mean, max}, angular_rate_radps {min, mean, max}, calibration {fsu,
     fsv, cu, cv, baseline_m, K, M}, cam_T_imu.
@@ -882,6 +882,7 @@ def _summarize(sequence: Sequence) -> dict:
     speed = np.linalg.norm(sequence.linear_velocity_in_imu_mps, axis=1)
     rate = np.linalg.norm(sequence.angular_velocity_in_imu_radps, axis=1)
     dt = np.diff(sequence.timestamps_s)
+    repeated, evidence = obs.repeat_evidence(sequence.repeat_motion())
     return {
         "name": sequence.name,
         "source": sequence.source,
@@ -894,6 +895,8 @@ def _summarize(sequence: Sequence) -> dict:
             "total": obs.n_observations,
             "per_frame": _stats(counts, mean=True, median=False),
             "frames_without": int(np.count_nonzero(counts == 0)),
+            "repeated": int(np.count_nonzero(repeated)),
+            "repeat_evidence": evidence,
         },
         "track_length_frames": _stats(tracks),
         "disparity_px": {**_stats(disparity), "non_positive": int(np.count_nonzero(~(disparity > 0)))},
