@@ -114,3 +114,12 @@ def test_stale_staging_directories_are_removed_and_live_ones_kept(tmp_path):
     shutil.rmtree(live)
     _write(out, NEW)
     assert _debris(out) == [] and _state(out) == NEW
+
+
+def test_without_renameat2_the_commit_falls_back_to_renames(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    _write(out, OLD)
+    (out / "notes.txt").write_text(FOREIGN["notes.txt"])
+    monkeypatch.setattr(outputs, "_exchange", lambda a, b: False)
+    _write(out, NEW)  # landmarks.ply (a mode file this run did not make) goes, the user's file stays
+    assert _state(out) == {**NEW, "notes.txt": FOREIGN["notes.txt"]} and _debris(out) == []

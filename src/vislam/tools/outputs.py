@@ -280,6 +280,8 @@ class OutputStage:
         clean_stale_staging(resolved)
         tag = f"{_host()}-{os.getpid()}-"
         try:
+            if resolved.parent == resolved or resolved.parent.stat().st_dev != resolved.stat().st_dev:
+                raise OSError("a mount point: the staging directory goes inside it")
             self.staging = Path(tempfile.mkdtemp(prefix=f".{resolved.name}{_STAGE_PREFIX}{tag}", dir=resolved.parent))
             self._beside = True
         except OSError:
