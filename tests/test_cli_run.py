@@ -4,6 +4,7 @@ partial runs and Ctrl-C."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -219,3 +220,21 @@ def test_run_on_shared_sparse_0042(tmp_path):
     assert len(_lines(out / "trajectory.tum")) == 500
     assert summary["landmarks_in_map"] > 0
     assert summary["real_time_factor"] < 1.0
+
+
+def test_non_utf8_file_name_runs_and_checks(tmp_path, sim):
+    # issue 22.5: a byte that is not UTF-8 in the name crashed run (matplotlib title) and check (print)
+    data, _ = sim
+    name = tmp_path / os.fsdecode(b"drive\xff.npz")
+    name.write_bytes(data.read_bytes())
+    out = tmp_path / "out"
+    proc = vislam("run", name, "--out", out, "--mode", "localization")
+    assert proc.returncode == 0, proc.stderr
+    assert "drive\\xff" in proc.stdout
+    assert {p.name for p in out.iterdir()} == TRAJ
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert summary["dataset"]["name"] == "drive\\xff"
+    assert summary["dataset"]["path"].endswith("drive\\xff.npz")
+    proc = vislam("check", name)
+    assert proc.returncode == 0, proc.stderr
+    assert "drive\\xff.npz" in proc.stdout and "Traceback" not in proc.stderr

@@ -603,3 +603,17 @@ def test_shared_dataset_streamed_equals_naive(relative):
     np.testing.assert_array_equal(obs.frame_offsets, ref.frame_offsets)
     np.testing.assert_array_equal(obs.landmark_ids, ref.landmark_ids)
     np.testing.assert_array_equal(obs.pixels, ref.pixels)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.uint32, np.uint64])
+@pytest.mark.parametrize("order", ["C", "F"])
+def test_unsigned_features_cannot_mark_missing_and_are_refused(tmp_path, dtype, order):
+    # issue 22.4: uint16 turned every -1 into 65535, i.e. ~all cells became "observations"
+    arrays = valid_arrays(seed=8)
+    feats = np.round(arrays["features"]).astype(dtype)  # -1 wraps to the dtype's maximum
+    assert np.count_nonzero(feats != np.round(arrays["features"])) > 0
+    feats = np.asfortranarray(feats) if order == "F" else feats
+    path = write(tmp_path / "u.npz", dict(arrays, features=feats))
+    assert_refused(path, "features", np.dtype(dtype).name, "cannot hold -1", "signed integer or float")
+    with pytest.raises(DatasetError, match="cannot hold -1"):
+        dataset_io.iter_frames(path)

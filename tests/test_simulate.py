@@ -446,3 +446,21 @@ def test_cli_bad_option_one_line_error(tmp_path, bad):
     assert "Traceback" not in result.stderr
     assert bad[0] in lines[0]
     assert not (tmp_path / "x").exists()
+
+
+def test_simulate_refuses_a_drive_beyond_its_memory_limit_before_simulating(tmp_path, monkeypatch, capsys):
+    # issue 22.8: --frames 10000 peaked at ~30 GB (0.3 GB x (frames/1000)^2) and refused only after simulating
+    from vislam.cli import main
+    from vislam.cli import simulate as cli_simulate
+
+    def never(*args, **kwargs):
+        raise AssertionError("simulated before refusing")
+
+    monkeypatch.setattr(cli_simulate, "simulate_drive", never)
+    out = tmp_path / "sim"
+    assert main(["simulate", "--frames", "10000", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--frames 10000" in err and "--max-memory 2 GB" in err
+    assert not out.exists()
+    assert main(["simulate", "--frames", "600", "--max-memory", "0.1", "--out", str(out)]) == 2
+    assert cli_simulate.estimated_peak_gb(2500) <= cli_simulate.MEMORY_LIMIT_GB < cli_simulate.estimated_peak_gb(2600)

@@ -279,3 +279,96 @@ def test_drift_test_rejects_moving_landmarks():
     assert np.mean(lm.rejected[~moving]) < 0.1
     with pytest.raises(ConfigError):
         FilterOptions(smoother_drift_ratio=1.0)
+
+
+# ----------------------------------------------------------------------------- issue 22.1: gaps and failures
+
+
+def _with_gap(seq, at: int, gap_s: float):
+    t = seq.timestamps_s.copy()
+    t[at:] += gap_s
+    return seq.replace(timestamps_s=t)
+
+
+@pytest.fixture(scope="module")
+def stalled_drive():
+    """Stalled tracks (their observations attach to earlier poses): across a gap longer
+    than the window those poses have left it, so tracks continue from marginalized landmarks."""
+    sim = simulate_drive(SimulationOptions(n_frames=50, seed=5, **SCENE))
+    return with_stalls(sim.sequence)
+
+
+@pytest.mark.parametrize("gap_s", [3.5, 10.0])
+def test_smoother_survives_a_gap_longer_than_its_window(stalled_drive, gap_s):
+    from vislam.core.results import run_warnings
+
+    seq = _with_gap(stalled_drive, 25, gap_s)
+    assert gap_s > MODEL.smoother_window_s
+    r = estimators.run(seq, "smoother", MODEL)  # was: KeyError in SmootherFilter._frame
+    assert not r.partial and r.stats.frames_processed == seq.n_frames
+    assert np.all(np.isfinite(r.world_T_imu))
+    # tracks across the gap restart as new landmarks of the same id (a second "track")
+    assert np.any(r.landmarks.track > 0)
+    warnings = run_warnings(r)
+    gap = [w for w in warnings if "window" in w]
+    assert len(gap) == 1 and "24 -> 25" in gap[0] and f"({seq.timestamps_s[25] - seq.timestamps_s[24]:.3g} s)" in gap[0]
+
+
+class _Failing:
+    """Stands in for GTSAM's smoother: its update raises as GTSAM does (a message of several lines)."""
+
+    def __init__(self, inner, at: int, exc: BaseException):
+        self._inner, self._at, self._exc, self._n = inner, at, exc, 0
+
+    def update(self, *args):
+        self._n += 1
+        if self._n > self._at:
+            raise self._exc
+        return self._inner.update(*args)
+
+    def __getattr__(self, name):
+        return getattr(self._inner, name)
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("\nIndeterminant linear system detected while working near variable\n"
+                                              "8646911284551352320 (Symbol: x0).\n\nThread: ...\n"),
+                                 ValueError("gtsam:\n bad value")])
+def test_every_smoother_failure_is_one_line_and_a_partial_result(monkeypatch, exc):
+    sim = simulate_drive(SimulationOptions(n_frames=20, seed=2, **SCENE))
+    original = SmootherFilter.__init__
+
+    def init(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        self._smoother = _Failing(self._smoother, 8, exc)
+
+    monkeypatch.setattr(SmootherFilter, "__init__", init)
+    r = estimators.run(sim.sequence, "smoother", MODEL)
+    assert r.partial and r.stats.frames_processed == 8
+    assert "\n" not in r.error and "frame 8" in r.error
+    assert ("Indeterminant linear system" in r.error) if isinstance(exc, RuntimeError) else ("ValueError" in r.error)
+
+
+def test_compare_keeps_slam_when_the_smoother_fails(tmp_path, monkeypatch, capsys):
+    import json
+
+    from vislam.cli import main
+    from vislam.tools.dataset_io import save_sequence
+
+    sim = simulate_drive(SimulationOptions(n_frames=20, seed=2, **SCENE))
+    data = tmp_path / "drive.npz"
+    save_sequence(sim.sequence, data)
+    original = SmootherFilter.__init__
+
+    def init(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        self._smoother = _Failing(self._smoother, 8, KeyError(262))
+
+    monkeypatch.setattr(SmootherFilter, "__init__", init)
+    out = tmp_path / "out"
+    assert main(["compare", str(data), "--methods", "slam,smoother", "--out", str(out), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "smoother" in err[0] and "KeyError" in err[0] and "Traceback" not in err[0]
+    content = json.loads((out / "comparison.json").read_text())
+    assert content["methods"]["slam"]["partial"] is False and content["methods"]["slam"]["frames_processed"] == 20
+    assert content["methods"]["smoother"]["partial"] is True
+    assert (out / "slam" / "trajectory.tum").is_file() and (out / "smoother" / "trajectory.tum").is_file()

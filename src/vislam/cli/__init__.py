@@ -15,6 +15,7 @@ import sys
 
 from vislam import __version__
 from vislam.errors import VislamError
+from vislam.text import ERRORS as TEXT_ERRORS
 
 #: Subcommand modules, in the order ``vislam --help`` lists them. Each module defines
 #: ``register(subparsers)``, which adds its parser and sets ``func`` (args -> exit code).
@@ -63,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
+    for stream in (sys.stdout, sys.stderr):  # a file name's non-UTF-8 byte prints as \xff, not a traceback
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors=TEXT_ERRORS)
     _configure_logging(args.verbose)
     try:
         return int(args.func(args) or 0)

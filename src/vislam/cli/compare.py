@@ -169,6 +169,9 @@ def run(args) -> int:
         return 130
     if not args.quiet:
         _print(format_comparison(comparison, content, stage.out_dir))
+        for key, method in content["methods"].items():
+            for warning in method.get("warnings") or ():
+                print(f"vislam: warning: {key}: {warning}", file=sys.stderr)
     partial = [m.result for m in comparison.methods.values() if m.result.partial]
     if partial:
         r = partial[0]

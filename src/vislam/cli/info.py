@@ -53,6 +53,8 @@ def _matrix(rows, indent: str = "    ") -> list[str]:
 
 
 def format_summary(summary: dict) -> str:
+    from vislam.core.check import describe_repeat_evidence
+
     """The human-readable text of ``vislam info``."""
     s = summary
     cal = s["calibration"]
@@ -77,6 +79,8 @@ def format_summary(summary: dict) -> str:
         f"landmarks:       {s['landmarks']['total']} ({s['landmarks']['observed']} observed at least once)",
         f"observations:    {obs['total']} (per frame {_range(obs['per_frame'], 'count')}; "
         f"{obs['frames_without']} frames without any)",
+        *([f"repeats:         {obs['repeated']} observations repeat the previous frame's pixels "
+           f"({describe_repeat_evidence(obs['repeat_evidence'])})"] if "repeated" in obs else []),
         f"track length:    frames {_range(s['track_length_frames'], 'count')}",
         f"disparity:       px {_range(disp, '.3f')} ({disp['non_positive']} non-positive)",
         f"|vL - vR|:       px max {_num(s['row_mismatch_px']['max'], '.3f')}",

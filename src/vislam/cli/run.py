@@ -406,7 +406,7 @@ def interrupted_message(command: str, stage) -> str:
 
 def run(args) -> int:
     from vislam.core.estimators import run as run_estimator
-    from vislam.core.results import model_fit_warnings
+    from vislam.core.results import run_warnings
     from vislam.tools.comparison import evaluate_run, injected_noise_record, stage_evaluation
     from vislam.tools.config import load_known_poses
     from vislam.tools.dataset_io import load_sequence
@@ -460,7 +460,7 @@ def run(args) -> int:
                                        on_frame=record_frame(recorder, sequence))
             finally:
                 close()
-            extra["warnings"] = model_fit_warnings(result)
+            extra["warnings"] = run_warnings(result)
             if "timing" in result.extra:  # smoother: its own timings and those of refine
                 extra["timing"] = result.extra["timing"]
             if gt is not None:

@@ -201,28 +201,65 @@ class TrackTable(IdTable):
             self.remove(rejected[~in_sorted(rejected, ids_seen)])
 
 
-class RepeatDetector:
-    """Flags, frame by frame, observations whose four pixels repeat the same landmark's
-    observation in the previous frame bit for bit (see
-    :meth:`vislam.core.sequence.StereoObservations.repeated_mask`, which is the same test
-    over a whole sequence). Memory: the previous frame's observations."""
+class FrameRepeats:
+    """The repeat rule of :meth:`vislam.core.sequence.StereoObservations.repeated_mask`,
+    online: called frame by frame with ``(t, ids, z)``, it returns the (n,) repeat mask
+    of the frame. It keeps the previous frame's observations and the median motion of
+    its tracks; :meth:`set_motion` gives it the odometry of the next interval (with a
+    ``camera``; without one, integer pixels count as repeats only where new tracks
+    start). Memory: the previous frame's observations."""
 
-    def __init__(self, enabled: bool, stats: RunStats):
-        self.enabled = enabled
-        self.stats = stats
+    def __init__(self, camera=None):
+        self.camera = camera
         self._t = -2
         self._ids = np.zeros(0, dtype=np.int64)
         self._z = np.zeros((0, 4))
+        self._flow = float("nan")
+        self._motion = None
+
+    def set_motion(self, dt_s: float, linear_velocity, angular_velocity) -> None:
+        """The interval (s) and IMU sample that end at the next frame."""
+        if self.camera is not None:
+            self._motion = (float(dt_s), float(np.linalg.norm(linear_velocity)),
+                            float(np.linalg.norm(angular_velocity)), self.camera)
+
+    def __call__(self, t: int, ids: np.ndarray, z: np.ndarray) -> np.ndarray:
+        from vislam.core.sequence import repeat_decision
+
+        rep = np.zeros(ids.size, dtype=bool)
+        if self._t == t - 1 and ids.size and self._ids.size:
+            pos, hit = sorted_positions(ids, self._ids)
+            c = np.flatnonzero(hit)
+            prev = self._z[pos[c]]
+            cur = z[c]
+            equal = (prev == cur).all(axis=1)
+            if equal.any():
+                rep[c], _ = repeat_decision(cur, equal, int(ids.size - c.size), self._flow, self._motion)
+            flow = np.hypot(cur[:, 0] - prev[:, 0], cur[:, 1] - prev[:, 1])
+            self._flow = float(np.median(flow)) if flow.size else float("nan")
+        else:
+            self._flow = float("nan")
+        self._t, self._ids, self._z = t, ids, z
+        self._motion = None
+        return rep
+
+
+class RepeatDetector(FrameRepeats):
+    """Flags, frame by frame, observations that repeat the same landmark's observation
+    in the previous frame (:class:`FrameRepeats`, the rule of
+    :meth:`vislam.core.sequence.StereoObservations.repeated_mask`) and counts them in
+    ``stats.observations_repeated``. Memory: the previous frame's observations."""
+
+    def __init__(self, enabled: bool, stats: RunStats, camera=None):
+        super().__init__(camera)
+        self.enabled = enabled
+        self.stats = stats
 
     def __call__(self, t: int, ids: np.ndarray, z: np.ndarray) -> np.ndarray:
         """``ids`` strictly increasing (as in :class:`StereoObservations`), ``z`` (n, 4)."""
-        rep = np.zeros(ids.size, dtype=bool)
         if not self.enabled:
-            return rep
-        if self._t == t - 1 and ids.size:
-            pos, hit = sorted_positions(ids, self._ids)
-            rep = hit & (self._z[pos] == z).all(axis=1) if self._ids.size else hit
-        self._t, self._ids, self._z = t, ids, z
+            return np.zeros(ids.size, dtype=bool)
+        rep = super().__call__(t, ids, z)
         self.stats.observations_repeated += int(rep.sum())
         return rep
 

@@ -68,7 +68,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -222,13 +222,14 @@ class CheckResult:
 # ----------------------------------------------------------------------------- tracks
 
 
-def in_sync_mask(obs: StereoObservations) -> np.ndarray:
-    """(N,) True for the observations of a track before its first exact repeat."""
+def in_sync_mask(obs: StereoObservations, repeated: np.ndarray | None = None) -> np.ndarray:
+    """(N,) True for the observations of a track before its first repeat (``repeated``,
+    default ``obs.repeated_mask()``)."""
     n = obs.n_observations
     out = np.ones(n, dtype=bool)
     if n < 2:
         return out
-    rep = obs.repeated_mask()
+    rep = obs.repeated_mask() if repeated is None else repeated
     order = np.lexsort((obs.frame_index, obs.landmark_ids))
     ids = obs.landmark_ids[order]
     c = np.cumsum(rep[order])
@@ -239,6 +240,24 @@ def in_sync_mask(obs: StereoObservations) -> np.ndarray:
     return out
 
 
+def describe_repeat_evidence(evidence: Mapping[str, int]) -> str:
+    """One phrase for :meth:`StereoObservations.repeat_evidence`'s counts (check, info)."""
+    parts = []
+    if evidence.get("frames_fractional"):
+        parts.append(f"{evidence['frames_fractional']} frames of bit-identical sub-pixel values")
+    if evidence.get("frames_new_tracks"):
+        parts.append(f"{evidence['frames_new_tracks']} frames of integer pixels where every continuing track "
+                     f"repeats as new tracks start")
+    if evidence.get("frames_odometry"):
+        parts.append(f"{evidence['frames_odometry']} frames of integer pixels where every continuing track repeats "
+                     f"while the odometry moves them")
+    text = "evidence: " + ("; ".join(parts) if parts else "none")
+    if evidence.get("integer_coincidences"):
+        text += (f"; {evidence['integer_coincidences']} other bit-identical integer observations are coincidences "
+                 f"of the quantization (not counted)")
+    return text
+
+
 def usable_observations(sequence: Sequence, min_disparity_px: float = 1.0, max_row_difference_px: float = 3.0,
                         max_depth_m: float = 60.0) -> np.ndarray:
     """(N,) in-sync observations with a disparity and row agreement good for triangulation."""
@@ -247,7 +266,8 @@ def usable_observations(sequence: Sequence, min_disparity_px: float = 1.0, max_r
     disparity = px[:, 0] - px[:, 2]
     depth = np.divide(sequence.camera.fsu * sequence.camera.baseline_m, disparity,
                       out=np.full(disparity.shape, np.inf), where=disparity > 0)
-    return (in_sync_mask(obs) & (disparity >= min_disparity_px) & (np.abs(px[:, 1] - px[:, 3]) <= max_row_difference_px)
+    return (in_sync_mask(obs, sequence.repeated_mask()) & (disparity >= min_disparity_px)
+            & (np.abs(px[:, 1] - px[:, 3]) <= max_row_difference_px)
             & (depth <= max_depth_m))
 
 
@@ -865,9 +885,10 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
 
     # --- what `info` reports ----------------------------------------------------------
     disparity = obs.pixels[:, 0] - obs.pixels[:, 2]
-    repeated = obs.repeated_mask()
+    repeated, evidence = obs.repeat_evidence(sequence.repeat_motion())
     est["observations"] = {"total": obs.n_observations, "repeated": int(np.count_nonzero(repeated)),
                            "repeated_share": float(np.mean(repeated)) if obs.n_observations else 0.0,
+                           "repeat_evidence": evidence,
                            "non_positive_disparity": int(np.count_nonzero(disparity <= 0))}
 
     # --- noise --------------------------------------------------------------------------
@@ -1217,7 +1238,8 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
     rep_share = o["repeated_share"]
     findings.append(Finding("repeated-observations", "OK",
                             f"{o['repeated']} observations ({100 * rep_share:.1f} %) repeat the previous frame's "
-                            f"pixels exactly (tracker artifact; the tracks are one frame late afterwards): "
+                            f"pixels exactly (tracker artifact; the tracks are one frame late afterwards; "
+                            f"{describe_repeat_evidence(o['repeat_evidence'])}): "
                             + ("the filter skips them by default (repeated_observations: skip); nothing to do"
                                if rep_share > 0 else "nothing to do")))
     npd = o["non_positive_disparity"]

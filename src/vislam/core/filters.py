@@ -345,7 +345,7 @@ class MappingFilter(_FrozenLog, _History):
         self._builder = MapBuilder()
         self.stats = RunStats()
         self._delta = _StatsDelta(self.stats)
-        self._repeated = RepeatDetector(self.options.repeated_observations != "use", self.stats)
+        self._repeated = RepeatDetector(self.options.repeated_observations != "use", self.stats, calibration.camera)
         self._split = self.options.repeated_observations == "split"
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
@@ -382,6 +382,7 @@ class MappingFilter(_FrozenLog, _History):
     def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
         """Dead-reckon the pose: μ ← exp(−τ û) μ (used when no pose is given to update)."""
         self._odometry.predict(dt_s, linear_velocity, angular_velocity)
+        self._repeated.set_motion(dt_s, linear_velocity, angular_velocity)
 
     def step(self, frame: Frame, world_T_imu: np.ndarray | None = None) -> FrameStats:
         """Predict (dead reckoning; not for the first frame), then update with the frame's observations."""
@@ -607,7 +608,7 @@ class SlamFilter(_FrozenLog, _History):
         self._builder = MapBuilder()
         self.stats = RunStats()
         self._delta = _StatsDelta(self.stats)
-        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats)
+        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats, calibration.camera)
         self._split = opts.repeated_observations == "split"
         self._last_correction = np.zeros(6)  # pose correction of the last update (OC transition)
         self._tau2_sum = 0.0  # Σ τ² of the predictions so far (delayed initialization)
@@ -635,7 +636,8 @@ class SlamFilter(_FrozenLog, _History):
 
         self.imu_bias_log = deque(maxlen=self.HISTORY)
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
-        self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames) if opts.remaps_stalled_tracks else None
+        self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames, calibration.camera) \
+            if opts.remaps_stalled_tracks else None
 
     # --- read access ----------------------------------------------------------------
     @property
@@ -748,6 +750,7 @@ class SlamFilter(_FrozenLog, _History):
         self._require_healthy()
         tau = _check_dt(dt_s)
         u = _twist(linear_velocity, angular_velocity)
+        self._repeated.set_motion(tau, linear_velocity, angular_velocity)
         bias, D = self.imu_bias_model, None
         if bias is not None:
             u = u - self.state.imu_bias  # u_meas − b̂

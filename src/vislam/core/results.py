@@ -10,8 +10,8 @@ import numpy as np
 from vislam.core.lie import se3_inverse
 from vislam.core.options import FilterOptions
 
-__all__ = ["CalibrationUsed", "LandmarkMap", "RunStats", "RunResult", "LANDMARK_OK", "LANDMARK_REJECTED", "model_fit_warnings",
-           "FIT_LIMITS"]
+__all__ = ["CalibrationUsed", "LandmarkMap", "RunStats", "RunResult", "LANDMARK_OK", "LANDMARK_REJECTED",
+           "model_fit_warnings", "FIT_LIMITS", "run_warnings", "JOB_LIMITS"]
 
 #: Landmark status codes in :attr:`LandmarkMap.status`.
 LANDMARK_OK = 0
@@ -246,4 +246,105 @@ def model_fit_warnings(result: "RunResult") -> list[str]:
     if s.nis_count >= 50 and s.nis_mean > FIT_LIMITS["nis_mean"]:
         out.append(f"the accepted stereo innovations average a NIS of {s.nis_mean:.1f} (a consistent filter: about "
                    f"3.6 after the gate); {hint}")
+    return out
+
+
+#: When a run's own statistics say it did not do its job (:func:`run_warnings`).
+#: ``no_update_s``: longest stretch without a used observation; on the shared files with
+#: fitting settings SLAM's longest is 3.8 s (sparse 0020; 0 s on the dense files), the
+#: smoother's 4.0 s. ``gap_factor``/``gap_min_s``: a frame interval beyond both is a gap
+#: the motion model does not cover (it holds one velocity sample over the interval; the
+#: shared files' intervals are 0.09-0.11 s). The smoother's own limits on the shared
+#: files' statistics: gated 8-24 %, landmarks rejected 31-61 % (61 %: sparse 0027).
+#: Mapping on the dead-reckoned poses of the noisy dense files warns, truthfully: 53-61 %
+#: of its observations are gated, 84-86 % of its landmarks rejected (sparse: 13-16 %, 34-49 %).
+JOB_LIMITS = {"no_update_s": 6.0, "gap_factor": 5.0, "gap_min_s": 0.5,
+              "smoother_gated_share": 0.5, "smoother_rejected_share": 0.8}
+
+_VISUAL_MODES = ("mapping", "slam", "smoother")
+
+
+def _frames(t: np.ndarray, indices) -> str:
+    return ", ".join(f"{int(k) - 1} -> {int(k)} ({t[k] - t[k - 1]:.3g} s)" for k in indices)
+
+
+def _gap_warnings(result: "RunResult") -> list[str]:
+    t = np.asarray(result.timestamps_s, dtype=np.float64)
+    if t.size < 2:
+        return []
+    dt = np.diff(t)
+    out = []
+    limit = max(JOB_LIMITS["gap_factor"] * float(np.median(dt)), JOB_LIMITS["gap_min_s"])
+    window = float(result.options.smoother_window_s) if result.mode == "smoother" else None
+    if window is not None:
+        over = np.flatnonzero(dt > window) + 1
+        if over.size:
+            out.append(f"{over.size} time gap(s) longer than the smoother's window ({window:g} s), between frames "
+                       f"{_frames(t, over[:3])}{', ...' if over.size > 3 else ''}: everything before a gap left the "
+                       f"window, the tracks across it restart as new landmarks, and the motion over it is one "
+                       f"velocity sample held (dead reckoning)")
+        dt = np.where(dt > window, 0.0, dt)  # named above
+    over = np.flatnonzero(dt > limit) + 1
+    if over.size:
+        out.append(f"{over.size} time gap(s) beyond the motion model (frame intervals above {limit:.3g} s, "
+                   f"{JOB_LIMITS['gap_factor']:g}x the median {float(np.median(np.diff(t))):.3g} s), between frames "
+                   f"{_frames(t, over[:3])}{', ...' if over.size > 3 else ''}: the filter holds one velocity sample "
+                   f"over each; the trajectory there is a guess")
+    return out
+
+
+def _longest_without(used: np.ndarray, t: np.ndarray) -> tuple[float, int, int]:
+    """(seconds, first frame, last frame) of the longest run of frames (after frame 0)
+    without a used observation; (0, -1, -1) when there is none."""
+    none = np.r_[False, np.asarray(used[1:]) == 0, False]
+    edges = np.flatnonzero(np.diff(none.astype(np.int8)))
+    if edges.size == 0:
+        return 0.0, -1, -1
+    starts, ends = edges[0::2] + 1, edges[1::2]  # frames [start, end] without (none[k] is frame k)
+    seconds = t[ends] - t[starts - 1]
+    i = int(np.argmax(seconds))
+    return float(seconds[i]), int(starts[i]), int(ends[i])
+
+
+def run_warnings(result: "RunResult") -> list[str]:
+    """Every warning of a run (one line each): :func:`model_fit_warnings` (SLAM) and
+    those that say the estimator did not do its job — no observation ever used, a long
+    stretch without a visual update, most observations refused (mapping, smoother), a
+    time gap beyond its model (:data:`JOB_LIMITS`)."""
+    out = model_fit_warnings(result)
+    s = result.stats
+    visual = result.mode in _VISUAL_MODES
+    refused = (f"{s.observations_gated} gated, {s.observations_not_initialized} not initialized "
+               f"(disparity or depth guards), {s.observations_repeated} repeated")
+    what = "the map is empty" if result.mode == "mapping" else "the trajectory is dead reckoning and the map is empty"
+    if visual and s.observations_used == 0 and s.frames_processed > 0:
+        out.append(f"no observation was used in {s.frames_processed} frames (of {s.observations_total}: {refused}); "
+                   f"{what}: run `vislam check DATA`")
+    elif visual and result.frame_stats is not None and "used" in result.frame_stats:
+        t = np.asarray(result.timestamps_s, dtype=np.float64)
+        seconds, first, last = _longest_without(result.frame_stats["used"], t)
+        if seconds > JOB_LIMITS["no_update_s"]:
+            seen = int(np.sum(result.frame_stats["observations"][first:last + 1]))
+            cause = (f"the recording has no observations there" if seen == 0 else
+                     f"all {seen} observations there were refused")
+            out.append(f"no visual update for {seconds:.1f} s (frames {first}-{last}; expected at most "
+                       f"{JOB_LIMITS['no_update_s']:g} s): {cause}; the "
+                       f"{'map' if result.mode == 'mapping' else 'trajectory'} there is "
+                       f"{'from the given poses only' if result.mode == 'mapping' else 'dead reckoning'}")
+    if result.mode in ("mapping", "smoother") and s.observations_used > 0:
+        tested = s.observations_used + s.observations_gated
+        limit = FIT_LIMITS["gated_share"] if result.mode == "mapping" else JOB_LIMITS["smoother_gated_share"]
+        hint = ("the poses it maps from (dead reckoning by default) drift from what the camera sees" if
+                result.mode == "mapping" else "its noise model may not fit this recording: run `vislam check DATA`")
+        if tested >= 50 and s.observations_gated / tested > limit:
+            out.append(f"{s.observations_gated / tested:.0%} of the tested observations were refused "
+                       f"({s.observations_gated} of {tested}; expected below {limit:.0%}); {hint}")
+        n = len(result.landmarks) if result.landmarks is not None else 0
+        limit = FIT_LIMITS["rejected_share"] if result.mode == "mapping" else JOB_LIMITS["smoother_rejected_share"]
+        if n >= 20:
+            rejected = int(np.count_nonzero(result.landmarks.rejected))
+            if rejected / n > limit:
+                out.append(f"{rejected / n:.0%} of the landmarks were rejected ({rejected} of {n}; expected below "
+                           f"{limit:.0%}); {hint}")
+    out.extend(_gap_warnings(result))
     return out

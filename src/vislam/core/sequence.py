@@ -20,7 +20,8 @@ import numpy as np
 
 from vislam.core.camera import StereoCamera
 
-__all__ = ["StereoObservations", "Sequence", "Frame", "Calibration", "MISSING_PIXEL", "frozen_array"]
+__all__ = ["StereoObservations", "Sequence", "Frame", "Calibration", "MISSING_PIXEL", "frozen_array", "RepeatMotion",
+           "repeat_decision", "predicted_flow_px", "REPEAT_MIN_PREDICTED_FLOW_PX"]
 
 #: Value of all four pixel coordinates where a landmark is not observed (dataset format).
 MISSING_PIXEL = -1.0
@@ -137,31 +138,122 @@ class StereoObservations:
         out[order[1:][follows]] = order[:-1][follows]
         return out
 
-    def repeated_mask(self) -> np.ndarray:
-        """(N,) True for an observation whose four pixel values are bit-identical to the
-        same landmark's observation in the previous frame.
+    def repeated_mask(self, motion: "RepeatMotion | None" = None) -> np.ndarray:
+        """(N,) True for an observation that repeats the same landmark's observation in
+        the previous frame — a tracker artifact, not a measurement: the KITTI feature
+        files repeat every live track's previous pixels at the frames where new features
+        are detected (5-12 % of their observations), while the vehicle moves on.
 
-        A sub-pixel tracker never reproduces a position exactly, so such a repeat is a
-        tracker artifact, not a measurement: the KITTI feature files repeat every live
-        track's previous pixels at the frames where new features are detected (5-12 % of
-        their observations), while the vehicle moves on.
+        The decision (:func:`repeat_decision`, the same rule as the estimators' online
+        detectors) survives integer-quantized pixels: four bit-identical pixels with a
+        fractional part are a repeat (a sub-pixel tracker never reproduces a position);
+        bit-identical integer pixels count only at a frame where every continuing track
+        repeats at once and either new tracks start there (the re-detection) or, with
+        ``motion`` (:meth:`Sequence.repeat_motion`), the odometry moves the tracks by at
+        least :data:`REPEAT_MIN_PREDICTED_FLOW_PX` while they moved the step before.
         """
+        return self.repeat_evidence(motion)[0]
+
+    def repeat_evidence(self, motion: "RepeatMotion | None" = None) -> tuple[np.ndarray, dict]:
+        """(:meth:`repeated_mask`, counts of the evidence): ``frames_fractional`` (stall
+        frames with bit-identical fractional pixels), ``frames_new_tracks`` and
+        ``frames_odometry`` (integer-pixel stall frames by each evidence),
+        ``integer_coincidences`` (bit-identical integer observations not counted)."""
         n = self.n_observations
         out = np.zeros(n, dtype=bool)
+        counts = {"frames_fractional": 0, "frames_new_tracks": 0, "frames_odometry": 0, "integer_coincidences": 0}
         if n < 2:
-            return out
-        order = np.lexsort((self.frame_index, self.landmark_ids))  # by landmark, then frame
-        ids = self.landmark_ids[order]
-        frames = self.frame_index[order]
-        px = self.pixels[order]
-        follows = (ids[1:] == ids[:-1]) & (frames[1:] == frames[:-1] + 1)
-        same = follows & np.all(px[1:] == px[:-1], axis=1)
-        out[order[1:][same]] = True
-        return out
+            return out, counts
+        prev = self.previous_index()
+        cont = prev >= 0
+        equal = np.zeros(n, dtype=bool)
+        equal[cont] = np.all(self.pixels[cont] == self.pixels[prev[cont]], axis=1)
+        if not equal.any():
+            return out, counts
+        flow = np.full(n, np.nan)
+        flow[cont] = np.hypot(*(self.pixels[cont, :2] - self.pixels[prev[cont], :2]).T)
+        off = self.frame_offsets
+        prev_flow = np.nan
+        for t in range(self.n_frames):
+            a, b = off[t], off[t + 1]
+            f = flow[a:b]
+            if equal[a:b].any():
+                c = cont[a:b]
+                rep, how = repeat_decision(self.pixels[a:b][c], equal[a:b][c], int(np.count_nonzero(~c)), prev_flow,
+                                           None if motion is None else motion.at(t))
+                out[np.flatnonzero(c) + a] = rep
+                if how:
+                    counts[how] += 1
+                counts["integer_coincidences"] += int(np.count_nonzero(equal[a:b][c] & ~rep))
+            f = f[np.isfinite(f)]
+            prev_flow = float(np.median(f)) if f.size else np.nan
+        return out, counts
 
     def track_lengths(self) -> np.ndarray:
         """(M,) number of frames in which each landmark is observed."""
         return np.bincount(self.landmark_ids, minlength=self.n_landmarks)
+
+
+#: Integer-pixel repeats count without new tracks only if the odometry moves some
+#: continuing track by at least this much (px) over the frame interval (and the tracks
+#: moved at least 1 px the step before). On the six shared files rounded to integers
+#: (benchmarks/quantized_repeats.py) the stall frames predict at least 1.46 px (sparse
+#: 0020; those below 2 px start new tracks), the frames where every track repeats by
+#: coincidence (a stopped car, one far track) at most 1.24 px or had no motion before.
+REPEAT_MIN_PREDICTED_FLOW_PX = 2.0
+#: ... the previous step's median track motion (px) that goes with it.
+REPEAT_MIN_PREVIOUS_FLOW_PX = 1.0
+
+
+@dataclass(frozen=True)
+class RepeatMotion:
+    """What the repeat rule needs of the odometry: per frame t, the interval τ (s) and
+    the speed |v| (m/s) and turn rate |ω| (rad/s) of frame t's sample, and the camera."""
+
+    tau_s: np.ndarray
+    speed_mps: np.ndarray
+    rate_radps: np.ndarray
+    camera: StereoCamera
+
+    def at(self, t: int):
+        if t == 0:
+            return None
+        return (float(self.tau_s[t]), float(self.speed_mps[t]), float(self.rate_radps[t]), self.camera)
+
+
+def predicted_flow_px(pixels: np.ndarray, motion) -> np.ndarray:
+    """Rough pixel motion of stereo observations ``pixels`` (n, 4) over one interval of
+    ``motion`` = (τ, |v|, |ω|, camera): the radial flow of a forward translation plus the
+    flow of the turn, r |v| τ / z + fsu |ω| τ (z from the disparity; none behind)."""
+    tau, speed, rate, cam = motion
+    d = pixels[:, 0] - pixels[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_z = np.where(d > 0, d / (cam.fsu * cam.baseline_m), 0.0)
+    r = np.hypot(pixels[:, 0] - cam.cu, pixels[:, 1] - cam.cv)
+    return r * speed * tau * inv_z + cam.fsu * rate * tau
+
+
+def repeat_decision(pixels: np.ndarray, equal: np.ndarray, n_new: int, previous_flow_px: float,
+                    motion=None) -> tuple[np.ndarray, str | None]:
+    """Which of one frame's *continuing* observations (``pixels`` (n, 4), ``equal``: all
+    four bit-identical to the previous frame's) are repeats, and the evidence ("frames_fractional",
+    "frames_new_tracks", "frames_odometry" or None). ``n_new``: tracks starting in the frame;
+    ``previous_flow_px``: median motion of the tracks the step before (NaN: unknown);
+    ``motion``: (τ, |v|, |ω|, camera) of the interval, or None. See
+    :meth:`StereoObservations.repeated_mask`."""
+    if not equal.any():
+        return equal, None
+    fractional = np.any(pixels != np.round(pixels), axis=1)
+    if np.any(equal & fractional):
+        return equal, "frames_fractional"  # bit-identical sub-pixel values: no coincidence
+    if not equal.all():  # integer pixels, some continuing tracks moved: coincidences of rounding
+        return np.zeros_like(equal), None
+    if n_new > 0:
+        return equal, "frames_new_tracks"
+    if motion is not None and previous_flow_px >= REPEAT_MIN_PREVIOUS_FLOW_PX and \
+            float(np.max(predicted_flow_px(pixels, motion))) >= REPEAT_MIN_PREDICTED_FLOW_PX:
+        return equal, "frames_odometry"
+    return np.zeros_like(equal), None
 
 
 @dataclass(frozen=True, eq=False)
@@ -308,6 +400,16 @@ class Sequence:
     def velocities(self) -> np.ndarray:
         """(T, 6) twists u_t = (v_t, ω_t) in the report's order."""
         return np.concatenate([self.linear_velocity_in_imu_mps, self.angular_velocity_in_imu_radps], axis=1)
+
+    def repeat_motion(self) -> RepeatMotion:
+        """The odometry the repeat rule uses (:meth:`StereoObservations.repeated_mask`)."""
+        tau = np.r_[0.0, np.diff(self.timestamps_s)]
+        return RepeatMotion(tau, np.linalg.norm(self.linear_velocity_in_imu_mps, axis=1),
+                            np.linalg.norm(self.angular_velocity_in_imu_radps, axis=1), self.camera)
+
+    def repeated_mask(self) -> np.ndarray:
+        """:meth:`StereoObservations.repeated_mask` with this sequence's odometry."""
+        return self.observations.repeated_mask(self.repeat_motion())
 
     def replace(self, **changes) -> "Sequence":
         """A copy with some fields replaced (the original is unchanged)."""

@@ -106,6 +106,11 @@ def _gtsam():
     return gtsam
 
 
+def _one_line(exc: BaseException) -> str:
+    """An exception's message on one line (GTSAM's span several, with blank lines)."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def _rigid(T: np.ndarray) -> np.ndarray:
     """T with its rotation projected onto SO(3) (recorded transforms are rigid to ~1e-7)."""
     U, _, Vt = np.linalg.svd(T[:3, :3])
@@ -247,7 +252,7 @@ class SmootherFilter(_History):
 
         self.stats = RunStats()
         self._delta = _StatsDelta(self.stats)
-        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats)
+        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats, calibration.camera)
         self._builder = MapBuilder()
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
@@ -348,6 +353,7 @@ class SmootherFilter(_History):
         self._require_healthy()
         tau = _check_dt(dt_s)
         self._pending_odometry = (tau, _twist(linear_velocity, angular_velocity))
+        self._repeated.set_motion(tau, linear_velocity, angular_velocity)
 
     def update(self, ids, pixels) -> FrameStats:
         """Add the frame's pose and observations, update the window, marginalize what
@@ -363,8 +369,14 @@ class SmootherFilter(_History):
         self._delta.begin()
         try:
             self._frame(t, ids_seen, z)
-        except RuntimeError as exc:  # gtsam: indeterminate system, cheirality, ...
-            self.failed = f"numerical failure at frame {t}: {exc}"
+        except EstimationError as exc:
+            self.failed = str(exc)
+            raise
+        except RuntimeError as exc:  # gtsam: indeterminate system, cheirality, ... (messages of several lines)
+            self.failed = f"numerical failure at frame {t}: {_one_line(exc)}"
+            raise EstimationError(self.failed, frame=t) from exc
+        except Exception as exc:  # noqa: BLE001 - any other failure inside GTSAM or here: one line, a partial result
+            self.failed = f"failure at frame {t}: {type(exc).__name__}: {_one_line(exc)}"
             raise EstimationError(self.failed, frame=t) from exc
         self.stats.frames_processed += 1
         n_live = sum(1 for lm in self._landmarks.values() if not lm.rejected)
@@ -766,6 +778,10 @@ class SmootherFilter(_History):
         for j, lm in enumerate(lms):
             self._final_lm[lm.key] = p[j]
             del self._landmarks[lm.key]
+            if self._tracks.get(lm.id) == lm.key:
+                # its track goes on (a time gap longer than the window): a later observation
+                # starts a new landmark of the same id (the map's next "track" of that id)
+                del self._tracks[lm.id]
         ids = np.array([lm.id for lm in lms], dtype=np.int64)
         status = np.array([LANDMARK_REJECTED if lm.rejected else LANDMARK_OK for lm in lms], dtype=np.uint8)
         cols = {name: np.array([getattr(lm, name) for lm in lms], dtype=np.int64)
@@ -843,7 +859,7 @@ def refine(smoother: SmootherFilter) -> tuple[np.ndarray, dict]:
             opt = g.LevenbergMarquardtOptimizer(graph, initial, params)
             out = opt.optimize()
         except RuntimeError as exc:
-            raise EstimationError(f"refine: numerical failure: {exc}") from exc
+            raise EstimationError(f"refine: numerical failure: {_one_line(exc)}") from exc
         return out, opt.iterations()
 
     tic = time.perf_counter()
@@ -874,9 +890,13 @@ def run_smoother(sequence, options: FilterOptions | None = None, progress=None, 
     timing = {"smoother_seconds": float(result.stats.filter_seconds), "smoother_update_seconds": filt.timings["update_s"],
               "smoother_marginals_seconds": filt.timings["marginals_s"]}
     if options.refine and not result.partial:
-        refined, info = filt.refine()
-        result.extra["smoother_world_T_imu"] = result.world_T_imu
-        result.world_T_imu = refined
-        timing.update(info)
+        try:
+            refined, info = filt.refine()
+        except EstimationError as exc:  # the smoother's result stands, marked partial (not refined)
+            result.partial, result.error = True, f"{exc} (the smoother's trajectory is kept, not refined)"
+        else:
+            result.extra["smoother_world_T_imu"] = result.world_T_imu
+            result.world_T_imu = refined
+            timing.update(info)
     result.extra["timing"] = timing
     return result

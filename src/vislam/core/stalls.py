@@ -120,10 +120,11 @@ def stall_frames(observations: StereoObservations) -> np.ndarray:
     return np.unique(observations.frame_index[observations.repeated_mask()])
 
 
-def remap_stalled_tracks(observations: StereoObservations) -> StereoObservations:
-    """Drop the repeats and move every other observation from frame k to ``k − lag``
-    (see the module docstring for the rule and its edge cases)."""
-    repeated = observations.repeated_mask()
+def remap_stalled_tracks(observations: StereoObservations, repeated: np.ndarray | None = None) -> StereoObservations:
+    """Drop the repeats (``repeated``, default ``observations.repeated_mask()``) and move
+    every other observation from frame k to ``k − lag`` (see the module docstring for the
+    rule and its edge cases)."""
+    repeated = observations.repeated_mask() if repeated is None else repeated
     if not np.any(repeated):
         return observations
     lag = _lags(observations, repeated)
@@ -148,7 +149,7 @@ def remap_stalled_tracks(observations: StereoObservations) -> StereoObservations
 def remap_sequence(sequence: Sequence) -> Sequence:
     """``sequence`` with :func:`remap_stalled_tracks` applied to its observations (itself
     if it has no repeats)."""
-    remapped = remap_stalled_tracks(sequence.observations)
+    remapped = remap_stalled_tracks(sequence.observations, sequence.repeated_mask())
     if remapped is sequence.observations:
         return sequence
     return sequence.replace(observations=remapped)
@@ -462,7 +463,7 @@ def segment_timing_residuals(
     if imu_T_world is None:
         imu_T_world, _ = dead_reckoning(sequence, np.zeros((6, 6)), np.zeros((6, 6)))
     world_T_imu = se3_inverse(imu_T_world)
-    repeated = obs.repeated_mask()
+    repeated = sequence.repeated_mask()
     lag = _lags(obs, repeated)
     rows = np.flatnonzero(cam.disparity_px(obs.pixels) >= min_disparity_px)
     start = _track_start_frames(obs)[rows]
@@ -508,7 +509,7 @@ def stall_diagnostics(sequence: Sequence, min_flow_px: float = 20.0) -> StallDia
     """Stall counts of ``sequence`` and :func:`odometry_flow_ratios` before and after
     :func:`remap_sequence`, on the same windows and with the same dead-reckoned poses."""
     obs = sequence.observations
-    repeated = obs.repeated_mask()
+    repeated = sequence.repeated_mask()
     lag = _lags(obs, repeated)
     stalls = np.unique(obs.frame_index[repeated])
     continuing = obs.previous_index() >= 0
@@ -552,12 +553,15 @@ class StallRemapBuffer:
     Memory: one row per track in view and the D buffered frames.
     """
 
-    def __init__(self, max_delay_frames: int):
+    def __init__(self, max_delay_frames: int, camera=None):
         from collections import deque
+
+        from vislam.core.bookkeeping import FrameRepeats
 
         if max_delay_frames < 0:
             raise ValueError("max_delay_frames must be >= 0")
         self.max_delay_frames = int(max_delay_frames)
+        self._repeats = FrameRepeats(camera)  # the rule of StereoObservations.repeated_mask
         # the tracks in view: every track alive at frame k was observed at k − 1 (a gap
         # ends it), so they are exactly the last frame's observations — its ids (strictly
         # increasing), pixels and the lag of each track
@@ -588,7 +592,9 @@ class StallRemapBuffer:
         # at lag 0 (tracks not observed now have ended: a gap starts a new track)
         pos, cont = sorted_positions(ids, self._ids)
         lag = np.where(cont, self._lag[pos], 0) if self._ids.size else np.zeros(ids.size, dtype=np.int64)
-        rep = cont & (self._px[pos] == z).all(axis=1) if self._ids.size else cont
+        if k > 0:
+            self._repeats.set_motion(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
+        rep = self._repeats(k, ids, z)
         lag += rep
         self._ids, self._px, self._lag = ids.copy(), z.copy(), lag  # (the caller may reuse its arrays)
         self.repeats += int(rep.sum())

@@ -13,6 +13,7 @@ import tempfile
 from pathlib import Path
 
 from vislam.errors import OutputError
+from vislam.text import printable
 
 __all__ = ["atomic_path", "write_text_atomic", "write_bytes_atomic"]
 
@@ -55,7 +56,7 @@ def _umask() -> int:
 
 def write_text_atomic(path, text: str) -> None:
     with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+        tmp.write_text(printable(text), encoding="utf-8")
 
 
 def write_bytes_atomic(path, data: bytes) -> None:

@@ -280,6 +280,13 @@ class MethodResult:
         return METHOD_LABELS[self.key]
 
     @property
+    def warnings(self) -> list[str]:
+        """:func:`vislam.core.results.run_warnings` of the run (one line each)."""
+        from vislam.core.results import run_warnings
+
+        return run_warnings(self.result)
+
+    @property
     def ate_m(self) -> float | None:
         if self.evaluation is None or not math.isfinite(self.evaluation.ape.rmse):
             return None
@@ -331,6 +338,7 @@ class MethodResult:
             "real_time_factor": self.estimation_seconds / processed_s if processed_s > 0 else None,
             "partial": bool(r.partial),
             "error": r.error,
+            "warnings": self.warnings,
             "evaluation": evaluation_summary(self.evaluation) if self.evaluation is not None else None,
         }
 
@@ -556,7 +564,8 @@ def write_comparison(directory, comparison: Comparison, start_time: float | None
         dataset = {**comparison.dataset, "label": label}
         if m.result.mode == "mapping":
             dataset["poses"] = "localization"
-        extra: dict[str, Any] = {"injected_noise": noise_record, "comparison": {"method": key, "label": m.label}}
+        extra: dict[str, Any] = {"injected_noise": noise_record, "comparison": {"method": key, "label": m.label},
+                                 "warnings": m.warnings}
         if comparison.auto is not None:
             extra["auto"] = comparison.auto
         if "timing" in m.result.extra:  # smoother: its own timings and those of refine

@@ -9,6 +9,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from vislam.text import printable
 from vislam.tools.atomic import write_text_atomic
 
 __all__ = ["json_safe", "dumps", "write_json"]
@@ -17,7 +18,7 @@ __all__ = ["json_safe", "dumps", "write_json"]
 def json_safe(value):
     """Plain JSON types; numpy scalars/arrays converted, non-finite floats -> None."""
     if isinstance(value, Mapping):
-        return {str(k): json_safe(v) for k, v in value.items()}
+        return {printable(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [json_safe(v) for v in value]
     if isinstance(value, np.ndarray):
@@ -29,8 +30,8 @@ def json_safe(value):
     if isinstance(value, (float, np.floating)):
         value = float(value)
         return value if math.isfinite(value) else None
-    if isinstance(value, Path):
-        return str(value)
+    if isinstance(value, (str, Path)):  # a file name may hold bytes that are not UTF-8
+        return printable(value)
     return value
 
 

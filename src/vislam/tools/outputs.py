@@ -31,20 +31,26 @@ value, effect, source), from the result's :attr:`~vislam.core.results.RunResult.
 ``compare``, ``demo`` and ``report`` do) is the data file's transform, as recorded.
 
 Atomicity: an :class:`OutputStage` writes every file into a hidden staging directory
-inside ``DIR`` and, once all are complete, renames them onto their final names
-(``os.replace``, with Ctrl-C deferred for those few renames). A failure or Ctrl-C before
-that leaves ``DIR`` as it was — no new file, no temporary debris (a directory the stage
-created is removed again). After a successful commit ``DIR`` holds one run's outputs:
+beside ``DIR`` and, once all are complete, swaps it in for ``DIR`` in one step (the
+entries of ``DIR`` the run does not replace hard-linked into it first; Ctrl-C deferred):
+a failure, Ctrl-C or kill at any moment leaves ``DIR`` as the previous complete folder or
+the new complete one, and the next run deletes the staging directories of killed runs.
+A failure or Ctrl-C before the commit leaves ``DIR`` as it was — no new file, no
+temporary debris (a directory the stage created is removed again). After a successful commit ``DIR`` holds one run's outputs:
 the landmark files of an earlier mapping/SLAM run are removed by a localization run.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import logging
 import os
+import re
 import shutil
 import signal
+import socket
 import tempfile
 import threading
 import time
@@ -127,14 +133,125 @@ def _sigint_deferred():
             previous(signal.SIGINT, None)  # default handler: raises KeyboardInterrupt
 
 
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname()) or "host"
+
+
+#: A staging directory's name: ``[.DIR.]vislam-staging-HOST-PID-XXXXXXXX`` (mkdtemp's suffix).
+_STAGE_NAME = re.compile(r"vislam-staging-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[A-Za-z0-9_]{8}$")
+#: Age after which a staging directory of the old name (no host and pid) counts as stale.
+_OLD_STAGE_AGE_S = 600.0
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _stale(path: Path) -> bool:
+    """Whether a staging directory belongs to no running process (a killed run's)."""
+    m = _STAGE_NAME.search(path.name)
+    if m is None:  # an old-style name: stale once old enough
+        try:
+            return time.time() - path.lstat().st_mtime > _OLD_STAGE_AGE_S
+        except OSError:
+            return False
+    if m["host"] != _host():  # another machine's (a shared file system): not ours to judge
+        return False
+    return not _pid_alive(int(m["pid"]))
+
+
+def clean_stale_staging(out_dir) -> list[Path]:
+    """Delete the staging directories that killed runs left in ``out_dir`` and beside it
+    (``.vislam-staging-*`` and ``.NAME.vislam-staging-*``). Returns what was removed."""
+    out = Path(out_dir)
+    found = []
+    for where, prefix in ((out, _STAGE_PREFIX), (out.parent, f".{out.name}{_STAGE_PREFIX}")):
+        try:
+            entries = list(where.iterdir())
+        except OSError:
+            continue
+        found += [p for p in entries if p.name.startswith(prefix) and p.is_dir() and not p.is_symlink()]
+    removed = []
+    for path in found:
+        if _stale(path):
+            shutil.rmtree(path, ignore_errors=True)
+            if not path.exists():
+                removed.append(path)
+                logger.info("removed %s (the staging directory of a run that was killed)", path)
+    return removed
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the directories ``a`` and ``b`` in one step (Linux ``renameat2`` with
+    ``RENAME_EXCHANGE``); False where the system or file system cannot."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    renameat2.restype = ctypes.c_int
+    if renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EPERM):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+class _CannotLink(Exception):
+    """An entry of the output directory that cannot be hard-linked (a special file, another device)."""
+
+
+def _link_tree(src: Path, dst: Path) -> None:
+    """Recreate ``src`` at ``dst`` with hard links (directories recreated, symlinks copied)."""
+    if src.is_symlink():
+        os.symlink(os.readlink(src), dst)
+    elif src.is_dir():
+        if os.path.ismount(src):
+            raise _CannotLink(src)
+        os.mkdir(dst)
+        shutil.copymode(src, dst)
+        for child in src.iterdir():
+            _link_tree(child, dst / child.name)
+    elif src.is_file():
+        try:
+            os.link(src, dst, follow_symlinks=False)
+        except OSError as exc:
+            raise _CannotLink(src) from exc
+    else:
+        raise _CannotLink(src)
+
+
 class OutputStage:
     """All-or-nothing output into a directory.
 
-    Use as a context manager: entering creates ``out_dir`` if needed and a staging
-    directory in it (so an unwritable destination fails *before* any work); files are
-    written to :meth:`path` ``(name)``; :meth:`commit` moves them onto their final names.
-    Leaving the block without a commit (an exception, Ctrl-C) deletes the staging
-    directory and any directory the stage created.
+    Use as a context manager: entering cleans the staging directories of killed runs
+    (:func:`clean_stale_staging`), creates ``out_dir`` if needed and a staging directory
+    (so an unwritable destination fails *before* any work); files are written to
+    :meth:`path` ``(name)``; :meth:`commit` puts them in place. Leaving the block without
+    a commit (an exception, Ctrl-C) deletes the staging directory and any directory the
+    stage created.
+
+    The staging directory is beside ``out_dir`` (``.NAME.vislam-staging-HOST-PID-*``,
+    when the parent is writable) and the commit swaps it in as a whole: the entries of
+    ``out_dir`` the run does not replace are hard-linked into it, then one
+    ``renameat2(RENAME_EXCHANGE)`` exchanges the two directories, and the old one is
+    deleted. A kill at any moment leaves ``out_dir`` as the previous complete folder or
+    the new complete one (and, at worst, a stale staging directory that the next run
+    removes). Where that cannot be done (no ``renameat2``, an unwritable parent, an entry
+    that cannot be hard-linked) the staged files are renamed into ``out_dir`` one by one,
+    as before.
     """
 
     def __init__(self, out_dir):
@@ -143,6 +260,8 @@ class OutputStage:
         self.committed = False
         self.files: list[Path] = []  # final paths, after commit
         self._created: list[Path] = []
+        self._beside = False  # the staging directory is beside out_dir (swappable)
+        self._target = self.out_dir  # out_dir with symlinks resolved (what the swap exchanges)
 
     def __enter__(self) -> "OutputStage":
         out = self.out_dir
@@ -158,11 +277,23 @@ class OutputStage:
         except OSError as exc:
             raise OutputError(f"{out}: cannot create the output directory: {exc.strerror or exc}") from None
         self._created = missing  # deepest first
-        try:
-            self.staging = Path(tempfile.mkdtemp(prefix=_STAGE_PREFIX, dir=out))
-        except OSError as exc:
+        if not os.access(out, os.W_OK | os.X_OK):
             self._remove_created()
-            raise OutputError(f"{out}: cannot write in the output directory: {exc.strerror or exc}") from None
+            raise OutputError(f"{out}: cannot write in the output directory: permission denied")
+        resolved = self._target = out.resolve()
+        clean_stale_staging(resolved)
+        tag = f"{_host()}-{os.getpid()}-"
+        try:
+            if resolved.parent == resolved or resolved.parent.stat().st_dev != resolved.stat().st_dev:
+                raise OSError("a mount point: the staging directory goes inside it")
+            self.staging = Path(tempfile.mkdtemp(prefix=f".{resolved.name}{_STAGE_PREFIX}{tag}", dir=resolved.parent))
+            self._beside = True
+        except OSError:
+            try:
+                self.staging = Path(tempfile.mkdtemp(prefix=f"{_STAGE_PREFIX}{tag}", dir=out))
+            except OSError as exc:
+                self._remove_created()
+                raise OutputError(f"{out}: cannot write in the output directory: {exc.strerror or exc}") from None
         return self
 
     def path(self, name: str) -> Path:
@@ -179,60 +310,98 @@ class OutputStage:
 
     def commit(self, order: Iterable[str] = (), remove_stale: Iterable[str] = _MODE_FILES,
                replace_directories: bool = False) -> list[Path]:
-        """Rename the staged files onto their final names (``order`` first, the rest
-        after, alphabetically) and delete older copies of ``remove_stale`` files this run
-        did not produce. Ctrl-C is held back until the renames are done.
+        """Put the staged files in place and delete older copies of ``remove_stale``
+        files this run did not produce; the other entries of the output directory stay.
+        Ctrl-C is held back until the commit is done. In one step where the system
+        allows it (see the class docstring), else by renames (``order`` first, the rest
+        after, alphabetically).
 
         With ``replace_directories``, staged entries may be directories: an existing
-        directory of the same name is moved into the staging area first (and deleted with
-        it), so it is replaced as a whole; on failure it is moved back.
+        directory of the same name is replaced as a whole.
         """
-        if replace_directories:
-            return self._commit_replacing_directories(order)
         names = self.staged()
+        out = self.out_dir
+        if replace_directories:
+            for name in names:
+                target = out / name
+                if self.path(name).is_dir() and (target.exists() or target.is_symlink()) and \
+                        (not target.is_dir() or target.is_symlink()):
+                    raise OutputError(f"{target}: exists and is not a directory; cannot replace it with the "
+                                      f"output directory {name}/")
+            remove_stale = ()
+        with _sigint_deferred():
+            if self._beside and self._swap(names, set(remove_stale)):
+                self.committed = True
+                self.files = [out / n for n in names]
+                return self.files
+            if replace_directories:
+                return self._commit_replacing_directories(names, order)
+            return self._commit_by_renames(names, order, remove_stale)
+
+    def _swap(self, names: list[str], remove_stale: set[str]) -> bool:
+        """The one-step commit; False (nothing changed in out_dir) when it cannot be done."""
+        out, staging = self._target, self.staging
+        keep = set(names) | remove_stale
+        try:
+            for entry in out.iterdir():
+                if entry.name not in keep:
+                    _link_tree(entry, staging / entry.name)
+            shutil.copymode(out, staging)
+            swapped = _exchange(staging, out)
+        except _CannotLink as exc:
+            logger.debug("%s: committing file by file (%s cannot be hard-linked)", out, exc)
+            swapped = False
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot move the outputs into place: {exc.strerror or exc}") from None
+        if not swapped:
+            for entry in list(staging.iterdir()):  # back to the staged files alone
+                if entry.name not in names:
+                    shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
+            return False
+        self._cleanup()  # the previous folder, now at the staging path
+        return True
+
+    def _commit_by_renames(self, names: list[str], order: Iterable[str], remove_stale: Iterable[str]) -> list[Path]:
         ordered = [n for n in order if n in names] + [n for n in names if n not in order]
         final: list[Path] = []
-        with _sigint_deferred():
-            try:
-                for name in ordered:
-                    os.replace(self.path(name), self.out_dir / name)
-                    final.append(self.out_dir / name)
-                for name in remove_stale:
-                    if name not in names:
-                        with contextlib.suppress(FileNotFoundError):
-                            (self.out_dir / name).unlink()
-            except OSError as exc:
-                raise OutputError(f"{self.out_dir}: cannot move the outputs into place: {exc.strerror or exc}") \
-                    from None
-            self.committed = True
-            self.files = final
-            self._cleanup()
+        try:
+            for name in ordered:
+                os.replace(self.path(name), self.out_dir / name)
+                final.append(self.out_dir / name)
+            for name in remove_stale:
+                if name not in names:
+                    with contextlib.suppress(FileNotFoundError):
+                        (self.out_dir / name).unlink()
+        except OSError as exc:
+            raise OutputError(f"{self.out_dir}: cannot move the outputs into place: {exc.strerror or exc}") \
+                from None
+        self.committed = True
+        self.files = final
+        self._cleanup()
         return final
 
-    def _commit_replacing_directories(self, order: Iterable[str]) -> list[Path]:
-        """See :meth:`commit` (``replace_directories``)."""
+    def _commit_replacing_directories(self, names: list[str], order: Iterable[str]) -> list[Path]:
+        """By renames, with ``replace_directories``: an existing directory of a staged
+        one's name is moved into the staging area first (and deleted with it); on
+        failure it is moved back."""
         out = self.out_dir
         moved: list[tuple[Path, Path]] = []
-        with _sigint_deferred():
-            try:
-                for name in self.staged():
-                    target = out / name
-                    if self.path(name).is_dir() and (target.exists() or target.is_symlink()):
-                        if not target.is_dir() or target.is_symlink():
-                            raise OutputError(f"{target}: exists and is not a directory; cannot replace it with the "
-                                              f"output directory {name}/")
-                        aside = self.path(f".replaced-{name}")
-                        os.replace(target, aside)
-                        moved.append((aside, target))
-                return self.commit(order=order, remove_stale=())
-            except (OSError, OutputError) as exc:
-                for aside, target in reversed(moved):
-                    with contextlib.suppress(OSError):
-                        if not target.exists():
-                            os.replace(aside, target)
-                if isinstance(exc, OutputError):
-                    raise
-                raise OutputError(f"{out}: cannot move the outputs into place: {exc.strerror or exc}") from None
+        try:
+            for name in names:
+                target = out / name
+                if self.path(name).is_dir() and target.is_dir() and not target.is_symlink():
+                    aside = self.path(f".replaced-{name}")
+                    os.replace(target, aside)
+                    moved.append((aside, target))
+            return self._commit_by_renames(names, order, ())
+        except (OSError, OutputError) as exc:
+            for aside, target in reversed(moved):
+                with contextlib.suppress(OSError):
+                    if not target.exists():
+                        os.replace(aside, target)
+            if isinstance(exc, OutputError):
+                raise
+            raise OutputError(f"{out}: cannot move the outputs into place: {exc.strerror or exc}") from None
 
     def _cleanup(self) -> None:
         if self.staging is not None:

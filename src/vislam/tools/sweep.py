@@ -49,7 +49,9 @@ worker that died). A truncated last line (a sweep killed mid-write) is dropped. 
 cell has run, the file is rewritten once, atomically, with one row per cell in grid order
 (the latest row of a cell wins; rows of cells not in this SPEC are kept after them), and
 ``DIR/summary.png`` shows the headline metric by option set and dataset with the spread
-over seeds. The table is CSV only (plain, appendable, diffable; floats written with
+over seeds. Sweeps sharing an ``--out`` (at the same time, in several processes) merge:
+every change of results.csv holds an ``flock`` on ``DIR/.results.csv.lock`` and opens
+the file afresh, so no row of either is lost. The table is CSV only (plain, appendable, diffable; floats written with
 ``repr``, so they read back exactly); ``pandas.read_csv`` loads it in one line.
 
 For clusters, see :mod:`vislam.tools.cluster`: workers must import the same vislam and
@@ -58,6 +60,7 @@ see the dataset paths (absolute, resolved by the client) under the same names.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import datetime as _dt
 import io
@@ -70,6 +73,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX: no lock
+    fcntl = None
 
 from vislam.core.noise import NoiseSpec
 from vislam.core.options import MODES, FilterOptions
@@ -84,6 +92,8 @@ __all__ = ["SweepSpec", "DatasetEntry", "Cell", "COLUMNS", "KEY_COLUMNS", "RESUL
 logger = logging.getLogger(__name__)
 
 RESULTS_FILE = "results.csv"
+#: The lock file beside results.csv (see :func:`_locked`).
+LOCK_FILE = ".results.csv.lock"
 SUMMARY_FIGURE = "summary.png"
 
 #: The key of a cell: a cell is done when results.csv has a row with this key and a done status.
@@ -456,47 +466,75 @@ def read_results(path) -> list[dict[str, str]]:
     return [dict(zip(COLUMNS, r)) for r in reader if len(r) == len(COLUMNS)]
 
 
+@contextlib.contextmanager
+def _locked(path: Path):
+    """Hold the exclusive lock of results.csv ``path`` (``flock`` on a lock file beside it,
+    :data:`LOCK_FILE`: results.csv itself is replaced by the compaction, its lock would
+    go with the old file). Every change of results.csv happens under it, so sweeps that
+    share an ``--out`` (concurrently, in several processes) merge their rows instead of
+    replacing each other's. The kernel releases it when a process dies."""
+    lock_path = path.with_name(LOCK_FILE)
+    try:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError as exc:
+        raise OutputError(f"{lock_path}: cannot be created: {exc.strerror or exc}") from None
+    try:
+        if fcntl is not None:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
 class _ResultsLog:
-    """results.csv opened for appending: the header is created atomically, then each
-    row is appended, flushed and fsynced."""
+    """results.csv for appending: the header is created atomically, then each row is
+    appended, flushed and fsynced — each step under :func:`_locked`, with the file opened
+    by name every time (another sweep on the same ``--out`` may have rewritten it)."""
 
     def __init__(self, path: Path):
         from vislam.tools.atomic import write_text_atomic
 
         self.path = path
-        if not path.exists() or path.stat().st_size == 0:
-            write_text_atomic(path, _csv_line(dict(zip(COLUMNS, COLUMNS))))
-        else:  # drop a truncated last line before appending
-            with open(path, "rb+") as fp:
-                data = fp.read()
-                if not data.endswith(b"\n"):
-                    fp.truncate(data.rfind(b"\n") + 1)
-        try:
-            self.fp = open(path, "a", encoding="utf-8", newline="")
-        except OSError as exc:
-            raise OutputError(f"{path}: cannot be written: {exc.strerror or exc}") from None
+        with _locked(path):
+            if not path.exists() or path.stat().st_size == 0:
+                write_text_atomic(path, _csv_line(dict(zip(COLUMNS, COLUMNS))))
+            else:  # drop a truncated last line before appending
+                try:
+                    with open(path, "rb+") as fp:
+                        data = fp.read()
+                        if not data.endswith(b"\n"):
+                            fp.truncate(data.rfind(b"\n") + 1)
+                except OSError as exc:
+                    raise OutputError(f"{path}: cannot be written: {exc.strerror or exc}") from None
 
     def append(self, row: Mapping[str, Any]) -> None:
-        self.fp.write(_csv_line(row))
-        self.fp.flush()
-        os.fsync(self.fp.fileno())
+        with _locked(self.path):
+            try:
+                with open(self.path, "a", encoding="utf-8", newline="") as fp:
+                    fp.write(_csv_line(row))
+                    fp.flush()
+                    os.fsync(fp.fileno())
+            except OSError as exc:
+                raise OutputError(f"{self.path}: cannot be written: {exc.strerror or exc}") from None
 
     def close(self) -> None:
-        self.fp.close()
+        pass
 
 
 def _compact(path: Path, cells: list[Cell]) -> list[dict[str, str]]:
-    """Rewrite results.csv atomically: one row per cell in grid order (the latest wins),
-    then rows of other cells (not in this SPEC) in file order. Returns the grid's rows."""
+    """Rewrite results.csv atomically (under :func:`_locked`): one row per cell in grid
+    order (the latest wins), then rows of other cells (not in this SPEC, e.g. those of
+    another sweep on the same ``--out``) in file order. Returns the grid's rows."""
     from vislam.tools.atomic import write_text_atomic
 
-    latest: dict[tuple, dict[str, str]] = {}
-    for r in read_results(path):
-        latest.pop(cell_key(r), None)  # keep file order of the latest rows
-        latest[cell_key(r)] = r
-    grid = [latest.pop(c.key) for c in cells if c.key in latest]
-    rows = grid + list(latest.values())
-    write_text_atomic(path, "".join(_csv_line(r) for r in [dict(zip(COLUMNS, COLUMNS))] + rows))
+    with _locked(path):
+        latest: dict[tuple, dict[str, str]] = {}
+        for r in read_results(path):
+            latest.pop(cell_key(r), None)  # keep file order of the latest rows
+            latest[cell_key(r)] = r
+        grid = [latest.pop(c.key) for c in cells if c.key in latest]
+        rows = grid + list(latest.values())
+        write_text_atomic(path, "".join(_csv_line(r) for r in [dict(zip(COLUMNS, COLUMNS))] + rows))
     return grid
 
 

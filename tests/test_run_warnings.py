@@ -1,0 +1,109 @@
+"""Every estimator warns when its own statistics say it did not do its job (issue 22.7):
+no observation ever used, a long stretch without a visual update, most observations
+refused, a time gap beyond its model — in the result (run_warnings), on stderr and in
+summary.json."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import vislam
+from vislam.cli import main
+from vislam.core.noise import NoiseSpec, inject_noise
+from vislam.core.results import JOB_LIMITS, run_warnings
+from vislam.core.sequence import StereoObservations
+from vislam.core.simulate import SimulationOptions, simulate_drive
+from vislam.tools.dataset_io import save_sequence
+
+#: A light scene (about 50 observations per frame) to keep the file fast.
+SCENE = dict(facade_density_per_m=0.5)
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return simulate_drive(SimulationOptions(n_frames=40, seed=7, **SCENE)).sequence
+
+
+def _with_pixels(seq, pixels):
+    obs = seq.observations
+    return seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels, obs.n_landmarks))
+
+
+def _modes():
+    modes = ["mapping", "slam"]
+    try:
+        import gtsam  # noqa: F401
+
+        modes.append("smoother")
+    except ImportError:  # pragma: no cover - gtsam is a dependency
+        pass
+    return modes
+
+
+@pytest.mark.parametrize("mode", _modes())
+def test_clean_drive_gives_no_warning(drive, mode):
+    assert run_warnings(vislam.run(drive, mode, vislam.FilterOptions())) == []
+
+
+@pytest.mark.parametrize("mode", _modes())
+@pytest.mark.parametrize("how", ["negative disparity", "pixels x 1e200"])
+def test_no_landmark_ever_used_warns(drive, mode, how):
+    px = drive.observations.pixels.copy()
+    if how == "negative disparity":
+        px[:, [0, 2]] = px[:, [2, 0]]
+    else:
+        px *= 1e200
+    r = vislam.run(_with_pixels(drive, px), mode, vislam.FilterOptions())
+    assert not r.partial and r.stats.observations_used == 0
+    warnings = run_warnings(r)
+    assert len(warnings) == 1 and warnings[0].startswith("no observation was used")
+    assert f"{drive.observations.n_observations} not initialized" in warnings[0]
+
+
+@pytest.mark.parametrize("mode", _modes())
+def test_most_observations_refused_warns(drive, mode):
+    noisy, info = inject_noise(drive, NoiseSpec(outlier_fraction=0.99, seed=1))
+    assert info["outliers_injected"] > 0.9 * drive.observations.n_observations
+    warnings = run_warnings(vislam.run(noisy, mode, vislam.FilterOptions()))
+    assert any("observations" in w and ("refused" in w or "failed the gate" in w) for w in warnings), warnings
+    assert any("landmarks were rejected" in w for w in warnings), warnings
+
+
+def test_long_stretch_without_a_visual_update_warns():
+    seq = simulate_drive(SimulationOptions(n_frames=90, seed=7, **SCENE)).sequence
+    obs = seq.observations
+    keep = (obs.frame_index < 10) | (obs.frame_index >= 80)  # frames 10-79 (7 s) have no observation
+    offsets = np.zeros(seq.n_frames + 1, dtype=np.int64)
+    np.cumsum(np.bincount(obs.frame_index[keep], minlength=seq.n_frames), out=offsets[1:])
+    blind = seq.replace(observations=StereoObservations(offsets, obs.landmark_ids[keep], obs.pixels[keep],
+                                                        obs.n_landmarks))
+    warnings = run_warnings(vislam.run(blind, "slam", vislam.FilterOptions()))
+    seconds = blind.timestamps_s[79] - blind.timestamps_s[9]
+    assert seconds > JOB_LIMITS["no_update_s"]
+    assert warnings == [f"no visual update for {seconds:.1f} s (frames 10-79; expected at most "
+                        f"{JOB_LIMITS['no_update_s']:g} s): the recording has no observations there; the trajectory "
+                        f"there is dead reckoning"]
+
+
+@pytest.mark.parametrize("mode", ["localization", "slam"])
+def test_time_gap_beyond_the_model_warns(drive, mode):
+    t = drive.timestamps_s.copy()
+    t[20:] += 10.0
+    r = vislam.run(drive.replace(timestamps_s=t), mode, vislam.FilterOptions())
+    gap = [w for w in run_warnings(r) if "time gap" in w]
+    assert len(gap) == 1 and "19 -> 20" in gap[0] and "beyond the motion model" in gap[0]
+
+
+def test_run_prints_and_records_them(drive, tmp_path, capsys):
+    px = drive.observations.pixels.copy()
+    px[:, [0, 2]] = px[:, [2, 0]]
+    data = tmp_path / "negative.npz"
+    save_sequence(_with_pixels(drive, px), data)
+    assert main(["run", str(data), "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert len(summary["warnings"]) == 1 and "no observation was used" in summary["warnings"][0]
+    assert err.count("vislam: warning:") == 1 and summary["warnings"][0] in err
