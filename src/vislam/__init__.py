@@ -44,6 +44,8 @@ _LAZY = {
     "MappingFilter": "vislam.core.filters",
     "SlamFilter": "vislam.core.filters",
     "FrameStats": "vislam.core.filters",
+    "final_poses": "vislam.core.filters",
+    "SmootherFilter": "vislam.core.smoother",
     "run": "vislam.core.estimators",
     "RunResult": "vislam.core.results",
     "LandmarkMap": "vislam.core.results",
