@@ -39,6 +39,7 @@ from vislam.core.noise import NoiseSpec, inject_noise
 from vislam.core.options import FilterOptions
 from vislam.core.results import RunResult
 from vislam.core.sequence import Sequence
+from vislam.core.suggest import did_you_mean
 from vislam.tools.evaluation import EvaluationResult, associate, evaluate, load_ground_truth, \
     plot_error_over_distance, write_metrics_json
 from vislam.tools.jsonio import write_json
@@ -104,8 +105,9 @@ def parse_methods(text: str, flag: str = "--methods") -> tuple[str, ...]:
     for item in items:
         key = METHOD_ALIASES.get(item, item)
         if key not in METHODS:
-            raise ConfigError(f"{flag}: unknown method {item!r}; expected a comma-separated list of "
-                              f"{', '.join(METHODS)} (or 'all')")
+            hint = did_you_mean(item, [*METHODS, *METHOD_ALIASES, "all"])
+            raise ConfigError(f"{flag}: unknown method {item!r}; {hint + ' ' if hint else ''}expected a "
+                              f"comma-separated list of {', '.join(METHODS)} (or 'all')")
         chosen.add(key)
     if not chosen:
         raise ConfigError(f"{flag}: expected at least one of {', '.join(METHODS)}, got {text!r}")
