@@ -85,6 +85,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def say_phase(text: str, quiet: bool) -> None:
+    """One status line on stderr for a phase of several seconds without a progress bar
+    (e.g. ``vislam check``'s analyses) — only on a terminal and not quiet."""
+    if not quiet and sys.stderr.isatty():
+        print(f"{text} ...", file=sys.stderr, flush=True)
+
+
 def _configure_logging(verbosity: int) -> None:
     level = logging.WARNING if verbosity <= 0 else logging.INFO if verbosity == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)

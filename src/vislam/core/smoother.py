@@ -886,6 +886,11 @@ def run_smoother(sequence, options: FilterOptions | None = None, progress=None, 
     timing = {"smoother_seconds": float(result.stats.filter_seconds), "smoother_update_seconds": filt.timings["update_s"],
               "smoother_marginals_seconds": filt.timings["marginals_s"]}
     if options.refine and not result.partial:
+        text = f"refining the whole drive ({result.stats.frames_processed} poses, batch Levenberg-Marquardt)"
+        logger.info(text)
+        phase = getattr(progress, "phase", None)  # a progress bar that can say what it waits for
+        if phase is not None:
+            phase(text)
         refined, info = filt.refine()
         result.extra["smoother_world_T_imu"] = result.world_T_imu
         result.world_T_imu = refined
