@@ -212,3 +212,14 @@ def test_example_runs(script, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", [str(script)])
     runpy.run_path(str(script), run_name="__main__")
     assert capsys.readouterr().out.strip(), f"{script.name} printed nothing"
+
+
+def test_results_tables_of_readme_and_docs_agree():
+    sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
+    try:
+        from readme_results import parse_table
+    finally:
+        sys.path.pop(0)
+    readme = parse_table((REPO_ROOT / "README.md").read_text(encoding="utf-8"))
+    docs = parse_table((REPO_ROOT / "docs" / "benchmarks.md").read_text(encoding="utf-8"))
+    assert readme and readme == docs  # one script writes both (benchmarks/readme_results.py --write)
