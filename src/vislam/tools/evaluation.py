@@ -785,7 +785,7 @@ def format_table(result: EvaluationResult) -> str:
 
 
 def plot_error_over_distance(result: EvaluationResult, path, title: str | None = None) -> None:
-    """PNG figure (8x6 in, 120 dpi), written atomically: aligned APE translation error vs
+    """PNG figure (9.5x6 in, 120 dpi), written atomically: aligned APE translation error vs
     distance travelled along the ground truth (top) and the KITTI translational error per
     segment length (bottom); the legends sit right of the axes, off the curves."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
