@@ -263,7 +263,7 @@ def test_evaluate_known_errors_and_outputs(tmp_path):
     plot_error_over_distance(r, png, title="test")
     import matplotlib.image
 
-    assert matplotlib.image.imread(png).shape[:2] == (720, 960)  # 8x6 in at 120 dpi
+    assert matplotlib.image.imread(png).shape[:2] == (720, 1140)  # 9.5x6 in at 120 dpi (legends right of the axes)
     assert sorted(p.name for p in png.parent.iterdir()) == ["fig.png", "metrics.json"]  # no debris
 
 

@@ -1,13 +1,12 @@
 """vislam: stereo visual-inertial SLAM on SE(3) — the report's extended Kalman filter.
 
-The public Python API (see the README's "Python API" section)::
+The public Python API (see docs/api.md)::
 
     import vislam
     seq = vislam.load_sequence("drive.npz")
     f = vislam.SlamFilter(seq.calibration, vislam.FilterOptions(velocity_noise_mps=0.5))
-    for frame in seq.frames():
-        f.step(frame)
-        pose = f.world_T_imu
+    for t, world_T_imu in vislam.final_poses(f, seq.frames()):
+        ...  # frame t's final pose (f.world_T_imu is the live, predicted one)
 
 Names are imported lazily (on first use), so ``import vislam`` is instant and the
 command line can handle Ctrl-C from its very first moment.
@@ -44,6 +43,8 @@ _LAZY = {
     "MappingFilter": "vislam.core.filters",
     "SlamFilter": "vislam.core.filters",
     "FrameStats": "vislam.core.filters",
+    "final_poses": "vislam.core.filters",
+    "SmootherFilter": "vislam.core.smoother",
     "run": "vislam.core.estimators",
     "RunResult": "vislam.core.results",
     "LandmarkMap": "vislam.core.results",

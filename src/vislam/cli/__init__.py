@@ -11,9 +11,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import re
 import sys
 
 from vislam import __version__
+from vislam.core.suggest import did_you_mean
 from vislam.errors import VislamError
 from vislam.text import ERRORS as TEXT_ERRORS
 
@@ -34,8 +36,39 @@ COMMAND_MODULES = [
 ]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with "did you mean" for a misspelt flag, command or choice (the
+    subcommands' parsers are of this class too: ``add_subparsers`` copies it)."""
+
+    _CHOICE = re.compile(r"invalid choice: '([^']*)' \(choose from (.*)\)")
+
+    def parse_args(self, args=None, namespace=None):
+        namespace, extras = self.parse_known_args(args, namespace)
+        if extras:
+            parser = self._chosen_subparser(namespace) or self
+            flags = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+            hints = [f"{flag}: {hint}" for flag in (arg.split("=", 1)[0] for arg in extras if arg.startswith("-"))
+                     for hint in [did_you_mean(flag, flags)] if hint]
+            parser.error("unrecognized arguments: " + " ".join(extras) + ("; " + "; ".join(hints) if hints else ""))
+        return namespace
+
+    def _chosen_subparser(self, namespace):
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                return action.choices.get(getattr(namespace, action.dest, None) or "")
+        return None
+
+    def error(self, message):
+        match = self._CHOICE.search(message)
+        if match:
+            hint = did_you_mean(match.group(1), re.findall(r"'([^']*)'", match.group(2)))
+            if hint:
+                message = f"{message}; {hint}"
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="vislam",
         description="Stereo visual-inertial SLAM on SE(3) with an extended Kalman filter.",
     )
@@ -51,6 +84,13 @@ def build_parser() -> argparse.ArgumentParser:
             raise
         module.register(subparsers)
     return parser
+
+
+def say_phase(text: str, quiet: bool) -> None:
+    """One status line on stderr for a phase of several seconds without a progress bar
+    (e.g. ``vislam check``'s analyses) — only on a terminal and not quiet."""
+    if not quiet and sys.stderr.isatty():
+        print(f"{text} ...", file=sys.stderr, flush=True)
 
 
 def _configure_logging(verbosity: int) -> None:

@@ -13,6 +13,7 @@ import os
 import sys
 from pathlib import Path
 
+from vislam.cli import say_phase
 from vislam.core.check import check_sequence
 from vislam.errors import OutputError
 from vislam.tools.check_io import format_verdict, write_check_outputs
@@ -42,6 +43,9 @@ def run(args) -> int:
     if args.out and Path(args.out).exists() and not Path(args.out).is_dir():  # before seconds of work
         raise OutputError(f"{args.out}: exists and is not a directory (an output directory is expected)")
     sequence = load_sequence(args.data)
+    if not args.json:
+        say_phase(f"checking {sequence.name}: timestamps, IMU noise and biases, speed units, IMU-camera rotation, "
+                  f"time offset, pixel noise, moving landmarks", quiet=False)
     result = check_sequence(sequence)
     paths = write_check_outputs(result, args.out) if args.out else []
     text = dumps(result.to_dict()) if args.json else format_verdict(result)

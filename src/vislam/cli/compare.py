@@ -154,7 +154,11 @@ def run(args) -> int:
             runs = runs_of(methods)
             bar, close = make_progress(len(runs) * sequence.n_frames, "compare", args.quiet)
             offsets = {key: i * sequence.n_frames for i, key in enumerate(runs)}
-            progress = (lambda run_key, done: bar(offsets[run_key] + done)) if bar else None
+            progress = None
+            if bar:
+                def progress(run_key, done):
+                    bar(offsets[run_key] + done)
+                progress.phase = bar.phase  # the refinement says so on the bar
             try:
                 comparison = run_comparison(sequence, options, noise=noise, noise_info=noise_info, ground_truth=gt,
                                             ground_truth_info=gt_info, dataset=dataset, progress=progress,

@@ -310,6 +310,9 @@ def auto_options(args, sequence, quiet: bool):
     (:func:`vislam.tools.auto.auto_check`; the findings that are not OK on stderr)."""
     from vislam.tools.auto import auto_check, findings_to_print
 
+    from vislam.cli import say_phase
+
+    say_phase(f"--auto: checking {sequence.name} (noise, biases, conventions, calibration; vislam check)", quiet)
     record = auto_check(sequence)
     options = options_from_args(args, record["suggested"])
     if not quiet:
@@ -329,6 +332,12 @@ def make_progress(total: int, desc: str, quiet: bool):
     def progress(done: int) -> None:
         bar.update(done - bar.n)
 
+    def phase(text: str) -> None:
+        """A phase after the frames (e.g. the smoother's refinement): the bar says it."""
+        bar.set_description_str(f"{desc}: {text}")
+        bar.refresh()
+
+    progress.phase = phase
     return progress, bar.close
 
 
@@ -342,7 +351,10 @@ def format_summary(s: dict, out_dir) -> str:
 
     ds = s["dataset"]
     frames = f"{s['frames_processed']}" + (f" of {s['frames']}" if s["frames_processed"] != s["frames"] else "")
-    lines = [f"{ds.get('name')}: {MODE_TITLES.get(s['mode'], s['mode'])}" + (" (PARTIAL)" if s["partial"] else ""),
+    title = MODE_TITLES.get(s["mode"], s["mode"])
+    if s["mode"] == "smoother" and (s.get("options") or {}).get("refine"):
+        title += " + batch refinement"  # the method actually run
+    lines = [f"{ds.get('name')}: {title}" + (" (PARTIAL)" if s["partial"] else ""),
              f"frames:        {frames} ({s['duration_s']:.1f} s of recording)"]
     if s["mode"] != "localization":
         lines.append(f"landmarks:     {s['landmarks_in_map']} in the map ({s['landmarks_rejected']} rejected), "
@@ -463,12 +475,17 @@ def run(args) -> int:
             extra["warnings"] = run_warnings(result)
             if "timing" in result.extra:  # smoother: its own timings and those of refine
                 extra["timing"] = result.extra["timing"]
+            gt_poses = None
             if gt is not None:
-                name = dataset.get("label") or sequence.name
-                extra["evaluation"] = stage_evaluation(stage.staging, evaluate_run(result, gt, sequence),
-                                                       f"{name} ({args.mode}) vs ground truth", ground_truth=gt_info)
+                from vislam.tools.outputs import display_name, method_title
+
+                evaluation = evaluate_run(result, gt, sequence)
+                gt_poses = evaluation.gt_world_T_imu  # drawn in the figure
+                extra["evaluation"] = stage_evaluation(
+                    stage.staging, evaluation, f"{display_name(dataset)} — {method_title(result)} vs ground truth",
+                    ground_truth=gt_info)
             summary = write_run_outputs(stage, result, dataset=dataset, duration_s=sequence.duration_s,
-                                        start_time=start_time, extra=extra)
+                                        start_time=start_time, extra=extra, ground_truth=gt_poses)
         if recorder is not None:
             recorder.close()  # the .rrd appears only after the other outputs
     except BaseException as exc:

@@ -68,7 +68,8 @@ from vislam.errors import ConfigError, EstimationError, GeometryError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["FrameStats", "LocalizationFilter", "MappingFilter", "SlamFilter", "FRAME_STAT_FIELDS"]
+__all__ = ["FrameStats", "FinalPoses", "LocalizationFilter", "MappingFilter", "SlamFilter", "FRAME_STAT_FIELDS",
+           "final_poses"]
 
 
 @dataclass
@@ -155,6 +156,16 @@ class _History:
         out = list(self._processed)
         self._processed.clear()
         return out
+
+    def pop_final_poses(self) -> list:
+        """``[(t, world_T_imu (4, 4)), ...]`` of the frames finished since the last call,
+        in order: :meth:`pop_processed` in the output convention (the IMU pose in the
+        world frame, the inverse of the filter's ``imu_T_world``). It takes the same
+        frames as :meth:`pop_processed`: use one or the other. With the stalled-track
+        remap these are the frames ``stall_max_delay_frames`` behind the newest one
+        (:attr:`world_T_imu` is the newest frame's pose, predicted); after the last frame,
+        ``drain()`` finishes the rest (or use :func:`final_poses`)."""
+        return [(t, se3_inverse(imu_T_world)) for t, imu_T_world, _cov, _stats in self.pop_processed()]
 
 
 class _FrozenLog:
@@ -958,3 +969,46 @@ class SlamFilter(_FrozenLog, _History):
             self._freeze(slots, LANDMARK_OK)
         self._frozen_parts = []
         return self._builder.build()
+
+
+# ============================================================================= final poses
+
+
+class FinalPoses:
+    """Iterator over ``(t, world_T_imu)``: each frame's final pose, in frame order, from a
+    stepwise filter fed ``frames`` (see :func:`final_poses`). After the last frame it
+    drains the filter (frames held by the stalled-track remap), calls ``finish()`` and
+    keeps its map in :attr:`landmarks` (None for localization)."""
+
+    def __init__(self, filt, frames):
+        self.filter = filt
+        self._frames = frames
+        #: The map returned by the filter's ``finish()``, once the iteration is over.
+        self.landmarks: LandmarkMap | None = None
+
+    def __iter__(self):
+        filt = self.filter
+        for frame in self._frames:
+            filt.step(frame)
+            yield from filt.pop_final_poses()
+        drain = getattr(filt, "drain", None)  # the EKF with the stalled-track remap holds frames
+        if drain is not None:
+            drain()
+        yield from filt.pop_final_poses()
+        self.landmarks = filt.finish()  # the smoother's window is final only now
+        yield from filt.pop_final_poses()
+
+
+def final_poses(filt, frames) -> FinalPoses:
+    """Step ``filt`` (a :class:`SlamFilter`, :class:`LocalizationFilter` or
+    :class:`~vislam.core.smoother.SmootherFilter`) through ``frames`` and yield
+    ``(t, world_T_imu)`` for every frame as soon as its estimate is final — the same poses
+    as the batch :func:`vislam.run` returns::
+
+        f = vislam.SlamFilter(seq.calibration, options)
+        poses = vislam.final_poses(f, seq.frames())
+        for t, world_T_imu in poses:
+            ...
+        landmark_map = poses.landmarks   # after the loop: the filter's finish()
+    """
+    return FinalPoses(filt, frames)

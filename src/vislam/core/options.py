@@ -26,6 +26,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from vislam.core.suggest import unknown_names_message
 from vislam.errors import ConfigError
 
 __all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "STALL_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET",
@@ -508,9 +509,9 @@ class FilterOptions:
         if not isinstance(values, Mapping):
             raise ConfigError(f"{source}: expected a mapping of option names to values, got {type(values).__name__}")
         known = {f.name: f for f in fields(cls)}
-        unknown = sorted(repr(k) for k in values if k not in known)  # repr: one line, even for odd keys
+        unknown = sorted((k for k in values if k not in known), key=repr)
         if unknown:
-            raise ConfigError(f"{source}: unknown option(s) {', '.join(unknown)}; known: {', '.join(known)}")
+            raise ConfigError(f"{source}: {unknown_names_message('option(s)', unknown, known)}")
         clean = {}
         for key, value in values.items():
             default = getattr(cls, key)

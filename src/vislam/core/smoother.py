@@ -272,6 +272,7 @@ class SmootherFilter(_History):
         self._current_cov = None
         # final values
         self._final_pose: dict[int, np.ndarray] = {}
+        self._final_cursor = 0  # the next frame pop_final_poses hands out
         self._online_cov: dict[int, np.ndarray] = {}  # marginal of each pose when it was the newest
         self._final_lm: dict[int, np.ndarray] = {}  # key -> p (for refine)
         # every factor of the drive, for refine
@@ -332,6 +333,17 @@ class SmootherFilter(_History):
             return poses, None
         covs = np.array([self._online_cov.get(k, np.full((6, 6), np.nan)) for k in range(n)]).reshape(n, 6, 6)
         return poses, covs
+
+    def pop_final_poses(self) -> list:
+        """``[(t, world_T_imu (4, 4)), ...]``: the poses that became final since the last
+        call (they left the window, or :meth:`finish` froze the window), in frame order —
+        the values :meth:`final_trajectory` returns. Unlike the EKFs' it does not take
+        the frames of :meth:`pop_processed`, which hands out the online estimates."""
+        out = []
+        while self._final_cursor in self._final_pose:
+            out.append((self._final_cursor, self._final_pose[self._final_cursor].copy()))
+            self._final_cursor += 1
+        return out
 
     # --- keys -------------------------------------------------------------------------
     def _X(self, k: int) -> int:
@@ -890,6 +902,11 @@ def run_smoother(sequence, options: FilterOptions | None = None, progress=None, 
     timing = {"smoother_seconds": float(result.stats.filter_seconds), "smoother_update_seconds": filt.timings["update_s"],
               "smoother_marginals_seconds": filt.timings["marginals_s"]}
     if options.refine and not result.partial:
+        text = f"refining the whole drive ({result.stats.frames_processed} poses, batch Levenberg-Marquardt)"
+        logger.info(text)
+        phase = getattr(progress, "phase", None)  # a progress bar that can say what it waits for
+        if phase is not None:
+            phase(text)
         try:
             refined, info = filt.refine()
         except EstimationError as exc:  # the smoother's result stands, marked partial (not refined)

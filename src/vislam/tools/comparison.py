@@ -39,10 +39,11 @@ from vislam.core.noise import NoiseSpec, inject_noise
 from vislam.core.options import FilterOptions
 from vislam.core.results import RunResult
 from vislam.core.sequence import Sequence
+from vislam.core.suggest import did_you_mean
 from vislam.tools.evaluation import EvaluationResult, associate, evaluate_associated, load_ground_truth, \
     plot_error_over_distance, write_metrics_json
 from vislam.tools.jsonio import write_json
-from vislam.tools.outputs import OutputStage, write_run_outputs
+from vislam.tools.outputs import OutputStage, display_name, write_run_outputs
 from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, TrajectoryFile
 
 __all__ = [
@@ -104,8 +105,9 @@ def parse_methods(text: str, flag: str = "--methods") -> tuple[str, ...]:
     for item in items:
         key = METHOD_ALIASES.get(item, item)
         if key not in METHODS:
-            raise ConfigError(f"{flag}: unknown method {item!r}; expected a comma-separated list of "
-                              f"{', '.join(METHODS)} (or 'all')")
+            hint = did_you_mean(item, [*METHODS, *METHOD_ALIASES, "all"])
+            raise ConfigError(f"{flag}: unknown method {item!r}; {hint + ' ' if hint else ''}expected a "
+                              f"comma-separated list of {', '.join(METHODS)} (or 'all')")
         chosen.add(key)
     if not chosen:
         raise ConfigError(f"{flag}: expected at least one of {', '.join(METHODS)}, got {text!r}")
@@ -484,7 +486,12 @@ def run_comparison(sequence: Sequence, options: FilterOptions, *, noise: NoiseSp
         sequence, noise_info = inject_noise(sequence, noise)
     results: dict[str, RunResult] = {}
     for run_key in runs_of(methods):
-        cb = (lambda done, run_key=run_key: progress(run_key, done)) if progress else None
+        cb = None
+        if progress:
+            def cb(done, run_key=run_key):
+                progress(run_key, done)
+            if hasattr(progress, "phase"):  # a bar that can name a phase (the refinement)
+                cb.phase = progress.phase
         if run_key == "smoother":
             results.update(_run_smoother_methods(sequence, options, methods, cb))
         else:
@@ -509,7 +516,8 @@ def _fmt_m(x: float | None) -> str:
 
 def comparison_title(comparison: Comparison) -> tuple[str, str]:
     """(title, subtitle) of the comparison figure."""
-    title = f"{comparison.label}: " + " vs ".join(METHOD_SHORT[k] for k in comparison.methods)
+    title = f"{display_name(comparison.dataset, comparison.sequence.name)}: " + " vs ".join(
+        METHOD_SHORT[k] for k in comparison.methods)
     lines = [f"added noise: {describe_noise(comparison.noise)} · filter noise: {describe_filter_noise(comparison.options)}"]
     if comparison.ground_truth is not None:
         if any(m.cam_ate_m is not None for m in comparison.methods.values()):
@@ -573,11 +581,12 @@ def write_comparison(directory, comparison: Comparison, start_time: float | None
         with OutputStage(directory / key) as stage:
             if m.evaluation is not None:
                 extra["evaluation"] = stage_evaluation(
-                    stage.staging, m.evaluation, f"{label} — {m.label} vs ground truth",
+                    stage.staging, m.evaluation, f"{display_name(dataset)} — {m.label} vs ground truth",
                     ground_truth=comparison.ground_truth_info)
             summaries[key] = write_run_outputs(stage, m.result, dataset=dataset,
                                                duration_s=comparison.sequence.duration_s, start_time=start_time,
-                                               extra=extra)
+                                               extra=extra, ground_truth=None if m.evaluation is None
+                                               else m.evaluation.gt_world_T_imu)
     view = plot_comparison(comparison, directory / COMPARISON_FIGURE)
     content = comparison.to_dict()
     content["figure"] = COMPARISON_FIGURE

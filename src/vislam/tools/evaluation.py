@@ -953,14 +953,14 @@ def format_table(result: EvaluationResult) -> str:
 
 
 def plot_error_over_distance(result: EvaluationResult, path, title: str | None = None) -> None:
-    """PNG figure (8x6 in, 120 dpi), written atomically: aligned APE translation error vs
+    """PNG figure (9.5x6 in, 120 dpi), written atomically: aligned APE translation error vs
     distance travelled along the ground truth (top) and the KITTI translational error per
-    segment length (bottom)."""
+    segment length (bottom); the legends sit right of the axes, off the curves."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     r = result
-    fig = Figure(figsize=(8, 6), dpi=120, layout="constrained")
+    fig = Figure(figsize=(9.5, 6), dpi=120, layout="constrained")
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.subplots(2, 1)
     fig.suptitle(title or "Trajectory error against ground truth", fontsize=13)
@@ -969,7 +969,7 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
     if np.all(np.isnan(r.aligned_position_error_m)):
         ax1.plot(d, r.unaligned_position_error_m, color="tab:blue", lw=1.2, label="not aligned")
         ax1.set_title("APE translation, not aligned (alignment impossible)", fontsize=10)
-        ax1.legend(loc="upper left", fontsize=9)
+        ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     elif r.camera is not None:  # camera ground truth: both frames
         c = r.camera
         ax1.plot(c.distance_along_gt_m, c.aligned_position_error_m, color="tab:green", lw=1.2,
@@ -977,12 +977,12 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
         ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.0, alpha=0.8,
                  label=f"IMU, ground truth converted with cam_T_imu (RMSE {r.ape.rmse:.3f} m)")
         ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10)
-        ax1.legend(loc="upper left", fontsize=9)
+        ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     else:
         ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.2, label="per frame")
         ax1.axhline(r.ape.rmse, color="tab:red", ls="--", lw=1.0, label=f"RMSE {r.ape.rmse:.3f} m")
         ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10)
-        ax1.legend(loc="upper left", fontsize=9)
+        ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     ax1.set_xlabel("distance travelled along ground truth (m)")
     ax1.set_ylabel("position error (m)")
     ax1.set_xlim(0, max(float(d[-1]), 1e-9))
@@ -1005,7 +1005,7 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
         ax2.set_title(
             f"KITTI odometry error{f' ({frame})' if frame else ''}: {k.t_pct:.2f} % translation, "
             f"{k.r_deg_per_100m:.3f} deg/100 m rotation ({k.n_segments} segments){cam}", fontsize=10)
-        ax2.legend(loc="upper right", fontsize=9)
+        ax2.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
         ax2.set_ylim(bottom=0)
     else:
         ax2.text(0.5, 0.5, f"ground truth shorter than {lengths.min():g} m:\nno KITTI segments",

@@ -77,6 +77,9 @@ __all__ = [
     "GROUNDTRUTH_KITTI",
     "LOCALIZATION_TUM",
     "MODE_TITLES",
+    "display_name",
+    "file_label",
+    "method_title",
     "OutputStage",
     "landmark_arrays",
     "write_landmarks_ply",
@@ -112,6 +115,37 @@ MODE_TITLES = {"localization": "IMU localization", "mapping": "Landmark mapping"
                "smoother": "Sliding-window smoother"}
 
 _STAGE_PREFIX = ".vislam-staging-"
+
+
+def method_title(result: RunResult) -> str:
+    """The method actually run, for titles: a ``--refine`` smoother run says so."""
+    title = MODE_TITLES.get(result.mode, result.mode)
+    if result.mode == "smoother" and getattr(result.options, "refine", False):
+        title += " + batch refinement"
+    return title
+
+
+def _printable(text: str) -> str:
+    """``text`` with undecodable bytes of a file name (surrogate escapes) shown as U+FFFD."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
+def file_label(path) -> str:
+    """``dense/0027.npz``: the file's folder and name, which tell the shared files apart
+    (``sparse/0027.npz`` and ``dense/0027.npz`` share the drive's name)."""
+    p = Path(path)
+    return _printable(f"{p.parent.name}/{p.name}" if p.parent.name else str(p.name))
+
+
+def display_name(dataset: Mapping[str, Any], default: str = "") -> str:
+    """The dataset's name in figure titles: its ``label`` (e.g. ``0027 + noise (...)``)
+    with the drive's name replaced by the file it came from (:func:`file_label`)."""
+    name = str(dataset.get("name") or default)
+    label = str(dataset.get("label") or name)
+    path = dataset.get("path")
+    if path and name and (label == name or label.startswith(name + " ")):
+        label = file_label(path) + label[len(name):]
+    return _printable(label)
 
 
 # ----------------------------------------------------------------------------- staging
@@ -597,7 +631,7 @@ def _write_common(stage: OutputStage, result: RunResult, dataset_name: str, curv
     if result.landmarks is not None:
         write_npz(stage.path(LANDMARKS_NPZ), landmark_arrays(result.landmarks))
         write_landmarks_ply(stage.path(LANDMARKS_PLY), result.landmarks, comments=ply_comments)
-    title = f"{dataset_name} — {MODE_TITLES.get(result.mode, result.mode)}"
+    title = f"{dataset_name} — {method_title(result)}"
     if result.partial:
         title += " (partial)"
     return plot_trajectory_map(stage.path(FIGURE), curves, result.landmarks, title=title,
@@ -609,15 +643,17 @@ _COMMIT_ORDER = (TRAJECTORY_TUM, TRAJECTORY_KITTI, ONLINE_TUM, SMOOTHER_TUM, LAN
 
 
 def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping[str, Any], duration_s: float,
-                      start_time: float | None, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                      start_time: float | None, extra: Mapping[str, Any] | None = None,
+                      ground_truth: np.ndarray | None = None) -> dict[str, Any]:
     """Write the outputs of ``vislam run`` for ``result`` into ``stage`` and commit them.
 
     ``dataset`` (``name`` and ``path`` at least) goes into summary.json and the figure's
-    title. Returns the summary written.
+    title. ``ground_truth`` ((n, 4, 4) world_T_imu, e.g. the evaluation's) is drawn in
+    the figure. Returns the summary written.
     """
     from vislam.tools.plotting import TrajectoryCurve
 
-    name = str(dataset.get("label") or dataset.get("name") or result.sequence_name)
+    name = display_name(dataset, result.sequence_name)
     label = "trajectory (localization poses)" if result.mode == "mapping" else "trajectory"
     if result.mode == "mapping" and dataset.get("poses") not in (None, "localization"):
         label = "trajectory (given poses)"
@@ -633,6 +669,9 @@ def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping
                                              zorder=2, mark_ends=False))
     if len(curves) > 1:
         curves[-1] = TrajectoryCurve(result.world_T_imu, "refined" if result.options.refine else "final (smoothed)")
+    if ground_truth is not None and len(ground_truth):
+        curves.insert(0, TrajectoryCurve(np.asarray(ground_truth), "ground truth", color="0.25", linewidth=3.2,
+                                         zorder=2, mark_ends=False))
     view = _write_common(stage, result, name, curves, None,
                          [f"vislam landmarks of {name} ({result.mode})"])
     extra = {**(extra or {}), "landmarks_outside_figure": view["landmarks_outside_view"]}

@@ -3,9 +3,10 @@
 :func:`plot_trajectory_map` draws one or more ``world_T_imu`` trajectories (the world
 frame is the first IMU pose: x forward, y left, z up, so xy is the ground plane) with
 start and end marked, and the landmarks of a :class:`~vislam.core.results.LandmarkMap`
-as small translucent dots (rejected landmarks as red crosses). The view is the extent
-of the trajectories plus a margin, so that a few far landmarks do not shrink the drive
-to a dot; the legend says how many landmarks fall outside it.
+as small translucent dots (rejected landmarks as faint red crosses under them). The view
+is the extent of the trajectories plus a margin, so that a few far landmarks do not
+shrink the drive to a dot; the legend, below the map and off the data, says how many
+landmarks fall outside it.
 
 :func:`plot_comparison_map` draws several estimates on one figure (the report's Figs
 7–11): each :class:`MapLayer` is a trajectory with, optionally, its landmarks as small
@@ -30,7 +31,7 @@ from vislam.tools.atomic import atomic_path
 __all__ = ["TrajectoryCurve", "MapLayer", "plot_trajectory_map", "plot_comparison_map", "plot_grouped_bars",
            "view_limits", "FIGSIZE_IN", "DPI"]
 
-FIGSIZE_IN = (8.0, 10.0)
+FIGSIZE_IN = (8.0, 11.0)
 #: Size of :func:`plot_comparison_map`'s figure (legend below the map, then the side view).
 COMPARISON_FIGSIZE_IN = (8.0, 11.5)
 #: Height ratio of the top view to the side view (height over distance) below it.
@@ -148,7 +149,7 @@ def _fit_equal_aspect(fig, ax, limits) -> tuple[tuple[float, float], tuple[float
 def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, title: str = "",
                         subtitle: str | None = None) -> dict:
     """Draw ``curves`` and ``landmarks`` (a LandmarkMap or None) in the xy plane, with a
-    side view (height over distance travelled) below; save a PNG at ``path`` (8x10 in,
+    side view (height over distance travelled) below; save a PNG at ``path`` (8x11 in,
     120 dpi) atomically.
 
     Returns ``{"xlim", "ylim", "landmarks_outside_view"}`` of the figure drawn.
@@ -159,7 +160,7 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
 
     fig = Figure(figsize=FIGSIZE_IN, dpi=DPI)
     FigureCanvasAgg(fig)
-    grid = fig.add_gridspec(2, 1, height_ratios=SIDE_VIEW_RATIOS)
+    grid = fig.add_gridspec(2, 1, height_ratios=SIDE_VIEW_RATIOS, hspace=0.5)
     ax = fig.add_subplot(grid[0])
     _side_view(fig.add_subplot(grid[1]), [(c.world_T_imu, c.color, c.linestyle, c.linewidth, 1.0) for c in curves])
 
@@ -175,10 +176,10 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
         ax.scatter(p[ok, 0], p[ok, 1], s=size, c="tab:green", alpha=0.5, linewidths=0, rasterized=True, zorder=1)
         handles.append(Line2D([], [], ls="none", marker="o", ms=4, color="tab:green", alpha=0.8,
                               label=f"landmarks ({n_ok})"))
-        if n_rej:
-            ax.scatter(p[rejected, 0], p[rejected, 1], s=16 if n_rej <= 200 else 9, marker="x", c="red",
-                       alpha=0.8, linewidths=0.9 if n_rej <= 200 else 0.7, zorder=2)
-            handles.append(Line2D([], [], ls="none", marker="x", ms=6, color="red",
+        if n_rej:  # faint, under the kept ones: they must not hide the map
+            ax.scatter(p[rejected, 0], p[rejected, 1], s=10 if n_rej <= 200 else 5, marker="x", c="tab:red",
+                       alpha=0.25, linewidths=0.6, rasterized=True, zorder=0.5)
+            handles.append(Line2D([], [], ls="none", marker="x", ms=5, color="tab:red", alpha=0.5,
                                   label=f"rejected landmarks ({n_rej})"))
     curve_handles: list = []
     traj_xy = []
@@ -203,14 +204,25 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
 
     _label_map_axes(fig, ax, title, subtitle)
 
-    xlim, ylim = _fit_equal_aspect(fig, ax, view_limits(np.concatenate(traj_xy) if traj_xy else np.zeros((0, 2))))
+    # The legend goes below the map, off the data; it is laid out before the view is
+    # fitted, with the count of landmarks outside the view set afterwards.
+    limits = view_limits(np.concatenate(traj_xy) if traj_xy else np.zeros((0, 2)))
 
-    n_outside = int(_outside(p, xlim, ylim).sum()) if p.size else 0
-    if n_outside:
-        handles.append(Line2D([], [], ls="none", label=f"{n_outside} landmark{'s' if n_outside != 1 else ''} "
-                                                        f"outside the view"))
-    if handles:
-        ax.legend(handles=handles, loc="best", fontsize=9, framealpha=0.9)
+    def outside_count(xlim, ylim) -> int:
+        return int(_outside(p, xlim, ylim).sum()) if p.size else 0
+
+    def outside_text(n: int) -> str:
+        return f"{n} landmark{'s' if n != 1 else ''} outside the view" if n else "no landmark outside the view"
+
+    first = outside_count(limits[:2], limits[2:])
+    if first:
+        handles.append(Line2D([], [], ls="none", label=outside_text(first)))
+    legend = ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, fontsize=9,
+                       frameon=False) if handles else None
+    xlim, ylim = _fit_equal_aspect(fig, ax, limits)
+    n_outside = outside_count(xlim, ylim)
+    if first and legend is not None:
+        legend.get_texts()[-1].set_text(outside_text(n_outside))
     with atomic_path(Path(path), suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=DPI)
     return {"xlim": tuple(map(float, xlim)), "ylim": tuple(map(float, ylim)), "landmarks_outside_view": n_outside}

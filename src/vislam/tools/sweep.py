@@ -81,6 +81,7 @@ except ImportError:  # pragma: no cover - not POSIX: no lock
 
 from vislam.core.noise import NoiseSpec
 from vislam.core.options import MODES, FilterOptions
+from vislam.core.suggest import unknown_names_message
 from vislam.errors import ConfigError, OutputError, VislamError
 from vislam.tools.config import _one_line, read_config_document
 from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAME_CHOICES, default_gt_frame
@@ -244,7 +245,7 @@ def parse_spec(raw: Any, source: str = "spec", base_dir=None) -> SweepSpec:
         raise ConfigError(f"{source}: expected a mapping with keys {', '.join(_SPEC_KEYS)}, got {type(raw).__name__}")
     unknown = [k for k in raw if k not in _SPEC_KEYS]
     if unknown:
-        raise ConfigError(f"{source}: unknown key {unknown[0]!r}; known: {', '.join(_SPEC_KEYS)}")
+        raise ConfigError(f"{source}: {unknown_names_message('key', unknown[:1], _SPEC_KEYS)}")
 
     # datasets
     items = raw.get("datasets")
@@ -261,7 +262,7 @@ def parse_spec(raw: Any, source: str = "spec", base_dir=None) -> SweepSpec:
                               f", got {type(item).__name__}")
         bad = [k for k in item if k not in _DATASET_KEYS]
         if bad:
-            raise ConfigError(f"{where}: unknown key {bad[0]!r}; known: {', '.join(_DATASET_KEYS)}")
+            raise ConfigError(f"{where}: {unknown_names_message('key', bad[:1], _DATASET_KEYS)}")
         if "path" not in item:
             raise ConfigError(f"{where}: missing 'path' (the dataset file)")
         path = _path(item["path"], f"{where}.path", base_dir)
@@ -327,7 +328,7 @@ def parse_spec(raw: Any, source: str = "spec", base_dir=None) -> SweepSpec:
             raise ConfigError(f"{where}: 'seed' is not a noise setting here; list the seeds under 'seeds'")
         bad = [k for k in value if k not in _NOISE_FIELDS]
         if bad:
-            raise ConfigError(f"{where}: unknown noise field {bad[0]!r}; known: {', '.join(_NOISE_FIELDS)}")
+            raise ConfigError(f"{where}: {unknown_names_message('noise field', bad[:1], _NOISE_FIELDS)}")
         try:
             spec = NoiseSpec(**value)
         except ConfigError as exc:
