@@ -20,6 +20,7 @@ from vislam.errors import VislamError
 #: ``register(subparsers)``, which adds its parser and sets ``func`` (args -> exit code).
 COMMAND_MODULES = [
     "vislam.cli.demo",
+    "vislam.cli.track",
     "vislam.cli.run",
     "vislam.cli.compare",
     "vislam.cli.eval",
