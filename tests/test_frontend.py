@@ -112,7 +112,7 @@ def _plain_folder(root, n=6, disparity=8.0, shift=(1.5, 0.5), size=(320, 200), s
     for k in range(n):
         dx, dy = 20 + k * shift[0], 20 + k * shift[1]
         for side, extra in (("left", 0.0), ("right", disparity)):
-            M = np.array([[1.0, 0, dx - extra], [0, 1.0, dy]])  # dst(x) = src(x - tx)
+            M = np.array([[1.0, 0, -dx - extra], [0, 1.0, -dy]])  # dst(x) = src(x + dx + extra), inside src
             img = cv2.warpAffine(big, M, (w, h), flags=cv2.INTER_CUBIC)
             cv2.imwrite(str(root / side / f"{k:06d}.png"), img)
     f = 300.0
@@ -138,8 +138,8 @@ def test_tracker_on_shifted_texture_recovers_disparity_and_motion(tmp_path):
     common, i0, i5 = np.intersect1d(ids0, ids5, return_indices=True)
     assert common.size >= 0.8 * ids0.size  # stable ids
     moved = px5[i5, :2] - px0[i0, :2]
-    np.testing.assert_allclose(np.median(moved, axis=0), [7.5, 2.5], atol=0.05)  # 5 frames of `shift`
-    assert np.all(np.abs(moved - [7.5, 2.5]) < 0.5)
+    np.testing.assert_allclose(np.median(moved, axis=0), [-7.5, -2.5], atol=0.05)  # 5 frames of -shift
+    assert np.all(np.abs(moved - [-7.5, -2.5]) < 0.1)
 
 
 def test_vislam_track_writes_a_recording_and_statistics(tmp_path, capsys):

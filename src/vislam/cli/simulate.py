@@ -86,6 +86,10 @@ def register(subparsers) -> None:
                         help="constant bias added to the angular velocities (rad/s, IMU axes)")
     faults.add_argument("--velocity-scale", type=float, default=_DEFAULTS.velocity_scale, metavar="F",
                         help="record the linear velocities times F (e.g. 3.6: km/h stored as m/s)")
+    parser.add_argument("--images", action="store_true",
+                        help="also render the drive's rectified grey stereo images (1242x375, textured road and "
+                        "facades) and write DIR as a KITTI raw date folder: calib_*.txt and sim_drive_SEED_sync/ "
+                        "(image_00, image_01, oxts) beside the files above (see docs/frontend.md)")
     parser.set_defaults(func=run)
 
 
@@ -121,6 +125,16 @@ def format_summary(stats, paths) -> str:
 def run(args) -> int:
     options = options_from_args(args)
     drive = simulate_drive(options)
-    paths = write_simulated_drive(drive, args.out)
+    if getattr(args, "images", False):
+        from vislam.cli.run import make_progress
+        from vislam.tools.simulate_images import write_rendered_drive
+
+        progress, close = make_progress(drive.n_frames, "render", False)
+        try:
+            paths = write_rendered_drive(drive, args.out, progress=progress)
+        finally:
+            close()
+    else:
+        paths = write_simulated_drive(drive, args.out)
     print(format_summary(drive.statistics(), paths))
     return 0

@@ -35,7 +35,7 @@ def register(subparsers) -> None:
     add_source_arguments(parser)
     parser.add_argument("--features", type=int, metavar="N", help="target number of live tracks (default 300)")
     parser.add_argument("--min-track-length", type=int, metavar="N",
-                        help="leave out tracks seen in fewer frames (default 2)")
+                        help="leave out tracks seen in fewer frames (default 3)")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     parser.set_defaults(func=run)
 

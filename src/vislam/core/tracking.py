@@ -18,6 +18,13 @@ Each frame:
    max_row_difference_px``), with a disparity ``uL - uR`` in
    ``[min_disparity_px, max_disparity_px]`` and a round trip within ``fb_threshold_px``.
    A track without a stereo match ends (tracks are contiguous, as the dataset format wants).
+2b. **Affine refinement** — each track keeps the (2r+1)² template of its first left
+   appearance; every new left and right position is refined by Gauss-Newton over an
+   affine warp of that template (plus gain and bias) into the image, so the position
+   follows the surface point the track started on rather than drifting with the
+   translation-only KLT (whose estimate is pulled by the flow elsewhere in its window
+   under perspective and scale change). A track whose warp leaves a residual above
+   ``affine_max_residual`` of the template's contrast ends.
 3. **Geometric check** — the previous frame's stereo triangulation of the tracked
    points against their new left pixels: P3P in RANSAC (``cv2.solvePnPRansac``) gives the
    camera motion; a track whose predicted left *or* right pixel is more than
@@ -73,8 +80,22 @@ class TrackerOptions:
     block_size_px: int = 5
     #: Corners are detected this far from the image border (px).
     border_px: int = 10
+    #: ... and not in a band of this fraction of the width at the left and right edges, where
+    #: forward motion takes features out of view within a frame or two (0 = detect up to border_px).
+    side_band_fraction: float = 0.15
     #: KLT window side (px, odd).
     klt_window_px: int = 21
+    #: Refinement of every KLT match on the full image with this smaller window (px, odd; 0 =
+    #: off): a large window finds the match, a small one centred on the corner places it, so
+    #: the flow elsewhere in the large window (perspective, divergence) does not shift it.
+    refine_window_px: int = 0
+    #: Affine refinement against each track's first appearance: half-size of the template
+    #: (px; the template is (2r+1)^2 pixels; 0 = off) and the largest residual it may leave,
+    #: relative to the template's contrast (RMS / standard deviation).
+    affine_radius_px: int = 7
+    affine_max_residual: float = 0.4
+    #: Gauss-Newton iterations of the affine refinement.
+    affine_iterations: int = 12
     #: KLT pyramid levels above the full image (temporal tracking).
     klt_levels: int = 3
     #: KLT pyramid levels of the stereo match of a new corner (no disparity guess yet).
@@ -83,7 +104,7 @@ class TrackerOptions:
     klt_iterations: int = 30
     klt_epsilon_px: float = 0.01
     #: Forward-backward check: largest round-trip error of a KLT match (px).
-    fb_threshold_px: float = 0.5
+    fb_threshold_px: float = 1.0
     #: Epipolar constraint of the rectified pair: largest |vR - vL| (px).
     max_row_difference_px: float = 1.0
     #: Disparity range uL - uR accepted (px); must be > 0.
@@ -96,7 +117,7 @@ class TrackerOptions:
     #: Fewest tracked points for the geometric check (fewer: the check is skipped).
     ransac_min_points: int = 12
     #: Tracks seen in fewer frames are left out of the output (see :func:`finish_tracks`).
-    min_track_length: int = 2
+    min_track_length: int = 3
 
     def __post_init__(self):
         for f in fields(self):
@@ -105,7 +126,7 @@ class TrackerOptions:
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                     raise ConfigError(f"{f.name} must be an integer, got {value!r}")
                 object.__setattr__(self, f.name, int(value))
-                if value < (0 if f.name in ("border_px", "ransac_iterations") else 1):
+                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px") else 1):
                     raise ConfigError(f"{f.name} must be >= 1, got {value!r}")
             else:
                 if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
@@ -114,6 +135,8 @@ class TrackerOptions:
                 object.__setattr__(self, f.name, float(value))
         if self.klt_window_px % 2 == 0 or self.klt_window_px < 3:
             raise ConfigError(f"klt_window_px must be odd and >= 3, got {self.klt_window_px}")
+        if self.refine_window_px and (self.refine_window_px % 2 == 0 or self.refine_window_px < 3):
+            raise ConfigError(f"refine_window_px must be 0 (off) or odd and >= 3, got {self.refine_window_px}")
         if not 0 < self.quality_level < 1:
             raise ConfigError(f"quality_level must be in (0, 1), got {self.quality_level}")
         if not 0 < self.min_disparity_px < self.max_disparity_px:
@@ -121,6 +144,8 @@ class TrackerOptions:
                               f"and {self.max_disparity_px}")
         if self.fb_threshold_px <= 0:
             raise ConfigError(f"fb_threshold_px must be > 0, got {self.fb_threshold_px}")
+        if not 0 <= self.side_band_fraction < 0.4:
+            raise ConfigError(f"side_band_fraction must be in [0, 0.4), got {self.side_band_fraction}")
         if self.ransac_min_points < 4:
             raise ConfigError(f"ransac_min_points must be >= 4 (P3P + 1), got {self.ransac_min_points}")
 
@@ -156,6 +181,7 @@ class TrackerStatistics:
     rejected_stereo_new: int = 0  # new corners without a stereo match
     rejected_stereo_tracked: int = 0  # tracked points whose stereo match failed (track ended)
     rejected_geometric: int = 0  # rejected by the P3P-RANSAC check
+    rejected_affine: int = 0  # the affine refinement against the first appearance failed
     left_image: int = 0  # left the image
 
     def to_dict(self, track_lengths: np.ndarray | None = None) -> dict[str, Any]:
@@ -175,6 +201,7 @@ class TrackerStatistics:
                 "stereo_tracked": self.rejected_stereo_tracked,
                 "stereo_new": self.rejected_stereo_new,
                 "geometric": self.rejected_geometric,
+                "appearance": self.rejected_affine,
             },
         }
         if track_lengths is not None:
@@ -209,6 +236,13 @@ class StereoTracker:
         self._ids = np.zeros(0, dtype=np.int64)
         self._pixels = np.zeros((0, 4))  # [uL, vL, uR, vR] of the live tracks in the previous frame
         self._shape = None
+        self._motion = None  # (R, t) of the last frame-to-frame camera motion, q_new = R q_old + t
+        r = self.options.affine_radius_px
+        g = np.arange(-r, r + 1, dtype=np.float32)
+        gx, gy = np.meshgrid(g, g)
+        self._offsets = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (m, 2)
+        self._templates = np.zeros((0, self._offsets.shape[0]), np.float32)
+        self._A = np.zeros((0, 2, 2, 2))  # per track: left and right warps
         o = self.options
         self._criteria = (self._cv2.TERM_CRITERIA_COUNT | self._cv2.TERM_CRITERIA_EPS, o.klt_iterations,
                           o.klt_epsilon_px)
@@ -227,6 +261,14 @@ class StereoTracker:
                                              criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         pa, st2, _ = cv2.calcOpticalFlowPyrLK(pyr_b, pyr_a, pb, a.copy(), winSize=(w, w), maxLevel=levels,
                                               criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        r = self.options.refine_window_px
+        if r:
+            pb, st3, _ = cv2.calcOpticalFlowPyrLK(pyr_a, pyr_b, a, pb.copy(), winSize=(r, r), maxLevel=0,
+                                                  criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            pa, st4, _ = cv2.calcOpticalFlowPyrLK(pyr_b, pyr_a, pb, pa.copy(), winSize=(r, r), maxLevel=0,
+                                                  criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            st = st & st3
+            st2 = st2 & st4
         pb = pb.reshape(-1, 2).astype(np.float64)
         fb = np.linalg.norm(pa.reshape(-1, 2).astype(np.float64) - np.asarray(pts_a, np.float64), axis=1)
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(pb).all(axis=1)
@@ -276,6 +318,7 @@ class StereoTracker:
         inl = inliers.ravel()
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], pixels[inl, :2].astype(np.float64), self.K, None, rvec, tvec)
         R, _ = cv2.Rodrigues(rvec)
+        self._motion = (R, tvec.reshape(3))
         q = obj @ R.T + tvec.reshape(1, 3)
         good = q[:, 2] > 0
         z = np.where(good, q[:, 2], 1.0)
@@ -286,6 +329,90 @@ class StereoTracker:
         err = np.maximum(np.hypot(uL - pixels[:, 0], v - pixels[:, 1]), np.hypot(uR - pixels[:, 2], v - pixels[:, 3]))
         return good & (err <= o.ransac_threshold_px)
 
+    def _sample(self, image, pts, A):
+        """(n, m[, channels]) values of ``image`` at ``pts + A @ offsets`` (bilinear)."""
+        cv2 = self._cv2
+        if pts.shape[0] == 0:
+            return np.zeros((0, self._offsets.shape[0]) + image.shape[2:], np.float32)
+        ox, oy = self._offsets[None, :, 0], self._offsets[None, :, 1]
+        mx = (pts[:, 0:1] + A[:, 0, 0:1] * ox + A[:, 0, 1:2] * oy).astype(np.float32)
+        my = (pts[:, 1:2] + A[:, 1, 0:1] * ox + A[:, 1, 1:2] * oy).astype(np.float32)
+        return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def _affine(self, images, templates, pts, A):
+        """Gauss-Newton of ``image(pts + A x) = g T(x) + c`` over (pts, A, g, c) per track.
+
+        ``images``: (h, w, 3) float32 of the image and its d/du, d/dv. Returns (pts, A, ok)."""
+        o = self.options
+        n = pts.shape[0]
+        if n == 0:
+            return pts, A, np.zeros(0, bool)
+        pts = pts.astype(np.float64).copy()
+        A = A.astype(np.float64).copy()
+        gain = np.ones(n)
+        bias = np.zeros(n)
+        x, y = self._offsets[None, :, 0].astype(np.float64), self._offsets[None, :, 1].astype(np.float64)
+        T = templates.astype(np.float64)
+        J = np.empty((n, T.shape[1], 8))
+        J[..., 6] = -T
+        J[..., 7] = -1.0
+        for _ in range(o.affine_iterations):
+            S = self._sample(images, pts, A).astype(np.float64)  # (n, m, 3)
+            Ix, Iy = S[..., 1], S[..., 2]
+            r = S[..., 0] - gain[:, None] * T - bias[:, None]
+            J[..., 0], J[..., 1] = Ix, Iy
+            J[..., 2], J[..., 3], J[..., 4], J[..., 5] = Ix * x, Ix * y, Iy * x, Iy * y
+            Jt = J.transpose(0, 2, 1)
+            H = Jt @ J + 1e-6 * np.eye(8)
+            b = Jt @ r[..., None]
+            try:
+                d = -np.linalg.solve(H, b)[..., 0]
+            except np.linalg.LinAlgError:
+                return pts, A, np.zeros(n, bool)
+            d = np.where(np.isfinite(d), d, 0.0)
+            pts += d[:, :2]
+            A[:, 0, 0] += d[:, 2]
+            A[:, 0, 1] += d[:, 3]
+            A[:, 1, 0] += d[:, 4]
+            A[:, 1, 1] += d[:, 5]
+            gain += d[:, 6]
+            bias += d[:, 7]
+            if np.all(np.abs(d[:, :2]).max(axis=1) < 1e-3):
+                break
+        img = images
+        I = self._sample(img, pts, A)[..., 0].astype(np.float64)
+        rms = np.sqrt(np.mean((I - gain[:, None] * T - bias[:, None]) ** 2, axis=1))
+        contrast = T.std(axis=1) + 1e-6
+        det = np.linalg.det(A)
+        ok = (rms / contrast <= o.affine_max_residual) & (det > 0.2) & (det < 5.0) & (gain > 0.3) & (gain < 3.0)
+        ok &= np.isfinite(pts).all(axis=1) & self._inside(pts)
+        return pts, A, ok
+
+    def _gradients(self, image):
+        cv2 = self._cv2
+        f = image.astype(np.float32)
+        return np.dstack([f, cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0, cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0])
+
+    def _predict(self, prev):
+        """Predicted left pixels of the live tracks from the last motion (constant velocity)."""
+        if self._motion is None or prev.shape[0] == 0:
+            return prev[:, :2].copy()
+        R, t = self._motion
+        q = self._triangulate(prev) @ R.T + t
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        good = q[:, 2] > 0.1
+        z = np.where(good, q[:, 2], 1.0)
+        pred = np.stack([fx * q[:, 0] / z + cx, fy * q[:, 1] / z + cy], axis=1)
+        h, w = self._shape
+        good &= (pred[:, 0] > -w) & (pred[:, 0] < 2 * w) & (pred[:, 1] > -h) & (pred[:, 1] < 2 * h)
+        return np.where(good[:, None], pred, prev[:, :2])
+
+    def _stereo_ok(self, stereo):
+        o = self.options
+        disparity = stereo[:, 0] - stereo[:, 2]
+        return ((np.abs(stereo[:, 3] - stereo[:, 1]) <= o.max_row_difference_px) & (disparity >= o.min_disparity_px)
+                & (disparity <= o.max_disparity_px) & self._inside(stereo[:, 2:]))
+
     def _detect(self, image, existing):
         """New corners (n, 2) in the cells below their share, away from ``existing`` (m, 2)."""
         cv2 = self._cv2
@@ -293,7 +420,8 @@ class StereoTracker:
         h, w = self._shape
         mask = np.zeros((h, w), np.uint8)
         bd = o.border_px
-        mask[bd:h - bd, bd:w - bd] = 255
+        side = max(bd, int(round(o.side_band_fraction * w)))
+        mask[bd:h - bd, side:w - side] = 255
         r = int(math.ceil(o.min_distance_px))
         for x, y in np.round(existing).astype(int):
             cv2.circle(mask, (int(x), int(y)), r, 0, -1)
@@ -343,24 +471,40 @@ class StereoTracker:
         pyr_l, pyr_r = left, right  # (OpenCV's Python binding takes images, not prebuilt pyramids)
         st = self.stats
 
+        use_affine = o.affine_radius_px > 0
+        if use_affine:
+            grad_l, grad_r = self._gradients(left), self._gradients(right)
+        m = self._offsets.shape[0]
         ids = np.zeros(0, np.int64)
         pixels = np.zeros((0, 4))
+        templates = np.zeros((0, m), np.float32)
+        warps = np.zeros((0, 2, 2, 2))
         if self._ids.size and self._prev_pyramid is not None:
             prev = self._pixels
-            cur, ok, fb = self._klt(self._prev_pyramid, pyr_l, prev[:, :2], prev[:, :2], o.klt_levels)
+            guess = self._predict(prev)
+            cur, ok, fb = self._klt(self._prev_pyramid, pyr_l, prev[:, :2], guess, o.klt_levels)
             ok &= fb <= o.fb_threshold_px
             st.lost_temporal += int(np.count_nonzero(~ok))
             inside = self._inside(cur)
             st.left_image += int(np.count_nonzero(ok & ~inside))
             ok &= inside
             prev, cur, tid = prev[ok], cur[ok], self._ids[ok]
+            tpl, A = self._templates[ok], self._A[ok]
             disparity = prev[:, 0] - prev[:, 2]
             stereo, sok = self._stereo(pyr_l, pyr_r, cur, disparity, o.klt_levels)
             st.rejected_stereo_tracked += int(np.count_nonzero(~sok))
-            prev, stereo, tid = prev[sok], stereo[sok], tid[sok]
+            prev, stereo, tid, tpl, A = prev[sok], stereo[sok], tid[sok], tpl[sok], A[sok]
+            if use_affine:
+                pl, AL, okl = self._affine(grad_l, tpl, stereo[:, :2], A[:, 0])
+                pr, AR, okr = self._affine(grad_r, tpl, stereo[:, 2:], A[:, 1])
+                stereo = np.concatenate([pl, pr], axis=1)
+                A = np.stack([AL, AR], axis=1)
+                aok = okl & okr & self._stereo_ok(stereo)
+                st.rejected_affine += int(np.count_nonzero(~aok))
+                prev, stereo, tid, tpl, A = prev[aok], stereo[aok], tid[aok], tpl[aok], A[aok]
             geo = self._geometric_inliers(prev, stereo)
             st.rejected_geometric += int(np.count_nonzero(~geo))
-            ids, pixels = tid[geo], stereo[geo]
+            ids, pixels, templates, warps = tid[geo], stereo[geo], tpl[geo], A[geo]
 
         new = self._detect(left, pixels[:, :2])
         if new.shape[0]:
@@ -368,12 +512,26 @@ class StereoTracker:
             stereo, sok = self._stereo(pyr_l, pyr_r, new, np.zeros(new.shape[0]), o.stereo_levels)
             st.rejected_stereo_new += int(np.count_nonzero(~sok))
             stereo = stereo[sok]
+            A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
+            if use_affine:
+                tpl = self._sample(grad_l, stereo[:, :2], A[:, 0])[..., 0].astype(np.float32)
+                pr, AR, okr = self._affine(grad_r, tpl, stereo[:, 2:], A[:, 1])
+                stereo = np.concatenate([stereo[:, :2], pr], axis=1)
+                A[:, 1] = AR
+                aok = okr & self._stereo_ok(stereo) & (tpl.std(axis=1) > 2.0)
+                st.rejected_stereo_new += int(np.count_nonzero(~aok))
+                stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
+            else:
+                tpl = np.zeros((stereo.shape[0], m), np.float32)
             new_ids = np.arange(self._next_id, self._next_id + stereo.shape[0], dtype=np.int64)
             self._next_id += stereo.shape[0]
             ids = np.concatenate([ids, new_ids])
             pixels = np.concatenate([pixels, stereo])
+            templates = np.concatenate([templates, tpl])
+            warps = np.concatenate([warps, A])
         order = np.argsort(ids, kind="stable")
         ids, pixels = ids[order], pixels[order]
+        self._templates, self._A = templates[order], warps[order]
         self._ids, self._pixels, self._prev_pyramid = ids, pixels, pyr_l
         st.frames += 1
         st.tracks_per_frame.append(int(ids.size))

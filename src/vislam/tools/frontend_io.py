@@ -69,7 +69,8 @@ from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.sequence import Sequence
 from vislam.errors import DatasetError
 
-__all__ = ["StereoSource", "open_stereo_source", "is_image_folder", "track_source", "write_tracks",
+__all__ = ["StereoSource", "open_stereo_source", "is_image_folder", "track_source", "write_tracks", "load_recording",
+           "CACHE_NAME",
            "read_kitti_calibration", "kitti_cam_T_imu", "LAYOUTS", "stats_path_for"]
 
 logger = logging.getLogger(__name__)
@@ -675,3 +676,74 @@ def write_tracks(sequence: Sequence, stats: dict, out) -> list[Path]:
     stats_path = stats_path_for(out)
     write_text_atomic(stats_path, json.dumps(stats, indent=2, sort_keys=True) + "\n")
     return [out, stats_path]
+
+
+# ----------------------------------------------------------------------------- folders as command input
+
+#: Names of the cached tracked recording (and its statistics) in a command's output directory.
+CACHE_NAME = "tracks.npz"
+
+
+def _cache_key(source: StereoSource, options) -> str:
+    h = hashlib.sha256()
+    h.update(source.fingerprint().encode())
+    h.update(json.dumps(options.to_dict(), sort_keys=True).encode())
+    h.update(json.dumps({"layout": source.layout, "extra": source.extra.get("pair", "")}).encode())
+    from vislam import __version__
+
+    h.update(__version__.encode())
+    return h.hexdigest()
+
+
+def load_recording(data, cache_dir=None, *, pair: str = "grey", velocities=None, tracker_options=None,
+                   progress_factory=None, need_velocities: bool = True):
+    """The :class:`Sequence` of ``data``: a dataset npz, or an image folder tracked first.
+
+    For a folder, the tracked recording is cached as ``cache_dir/tracks.npz`` (with its
+    statistics and the cache key in ``tracks.tracking.json``) and reused while the
+    images, calibration, velocities and tracker options are unchanged (``cache_dir``
+    None: no cache). ``need_velocities``: refuse a folder without velocities (EuRoC
+    without ``velocities``) before tracking. ``progress_factory(total, desc)`` gives
+    ``(callback, close)``. Returns ``(sequence, info)``; info is None for an npz, else a
+    dict (source, layout, cache path, whether the cache was reused, the statistics).
+    """
+    from vislam.core.tracking import TrackerOptions
+    from vislam.tools.dataset_io import load_sequence
+
+    data = Path(data)
+    if not data.is_dir():
+        return load_sequence(data), None
+    options = tracker_options or TrackerOptions()
+    source = open_stereo_source(data, pair=pair, velocities=velocities)
+    if need_velocities and source.velocities is None:
+        raise DatasetError(f"{data}: has no IMU velocities for the filter: {source.velocity_note}")
+    key = _cache_key(source, options)
+    info = {"source": str(data.resolve()), "layout": source.layout, "cache": None, "cache_reused": False}
+    if cache_dir is not None:
+        cache = Path(cache_dir) / CACHE_NAME
+        stats_file = stats_path_for(cache)
+        info["cache"] = str(cache)
+        if cache.is_file() and stats_file.is_file():
+            try:
+                old = json.loads(stats_file.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                old = {}
+            if old.get("cache_key") == key:
+                try:
+                    sequence = load_sequence(cache, name=source.name)
+                except DatasetError:
+                    sequence = None
+                if sequence is not None:
+                    logger.info("%s: reusing the tracks cached in %s", data, cache)
+                    info.update(cache_reused=True, statistics=old)
+                    return sequence.replace(source=str(data)), info
+    progress, close = (progress_factory(source.n_frames, "track") if progress_factory else (None, lambda: None))
+    try:
+        sequence, stats = track_source(source, options, progress=progress)
+    finally:
+        close()
+    stats["cache_key"] = key
+    if cache_dir is not None:
+        write_tracks(sequence, stats, Path(cache_dir) / CACHE_NAME)
+    info["statistics"] = stats
+    return sequence, info
