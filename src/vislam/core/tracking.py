@@ -30,6 +30,9 @@ Each frame:
    camera motion; a track whose predicted left *or* right pixel is more than
    ``ransac_threshold_px`` from its measurement is rejected (catches wrong temporal and
    wrong stereo matches alike, and points on moving objects).
+3b. **Drift check** — the camera poses chained from the frame-to-frame P3P motions carry
+   each track's first stereo triangulation to the current frame; a track whose left or right
+   position is more than ``drift_threshold_px`` from it ends.
 4. **Detection** — Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) at least
    ``min_distance_px`` from every live track, spread over a ``grid_cols x grid_rows``
    grid: each cell is filled up to its share of ``target_features``. New corners get new
@@ -112,6 +115,10 @@ class TrackerOptions:
     max_disparity_px: float = 250.0
     #: Geometric check: largest reprojection error in either image (px); 0 turns it off.
     ransac_threshold_px: float = 1.5
+    #: Drift check: a track's first stereo triangulation, carried to the current frame by the
+    #: chained P3P motions, must reproject within this many pixels of the current left and right
+    #: positions (catches slow slides, e.g. of corners made by an occluding edge); 0 = off.
+    drift_threshold_px: float = 2.0
     #: RANSAC iterations of the geometric check.
     ransac_iterations: int = 100
     #: Fewest tracked points for the geometric check (fewer: the check is skipped).
@@ -182,6 +189,7 @@ class TrackerStatistics:
     rejected_stereo_tracked: int = 0  # tracked points whose stereo match failed (track ended)
     rejected_geometric: int = 0  # rejected by the P3P-RANSAC check
     rejected_affine: int = 0  # the affine refinement against the first appearance failed
+    rejected_drift: int = 0  # drifted from the track's first triangulation
     left_image: int = 0  # left the image
 
     def to_dict(self, track_lengths: np.ndarray | None = None) -> dict[str, Any]:
@@ -202,6 +210,7 @@ class TrackerStatistics:
                 "stereo_new": self.rejected_stereo_new,
                 "geometric": self.rejected_geometric,
                 "appearance": self.rejected_affine,
+                "drift": self.rejected_drift,
             },
         }
         if track_lengths is not None:
@@ -237,6 +246,9 @@ class StereoTracker:
         self._pixels = np.zeros((0, 4))  # [uL, vL, uR, vR] of the live tracks in the previous frame
         self._shape = None
         self._motion = None  # (R, t) of the last frame-to-frame camera motion, q_new = R q_old + t
+        self._motion_ok = False  # whether the last frame's P3P check found the motion
+        self._cam_T_ref = np.eye(4)  # chained motions: current camera from the first frame's camera
+        self._p_in_ref = np.zeros((0, 3))  # per track: first triangulation in the first frame's camera (NaN: none)
         r = self.options.affine_radius_px
         g = np.arange(-r, r + 1, dtype=np.float32)
         gx, gy = np.meshgrid(g, g)
@@ -306,6 +318,7 @@ class StereoTracker:
         cv2 = self._cv2
         o = self.options
         n = pixels.shape[0]
+        self._motion_ok = False
         if o.ransac_threshold_px <= 0 or n < o.ransac_min_points:
             return np.ones(n, bool)
         obj = self._triangulate(p_prev)
@@ -319,6 +332,7 @@ class StereoTracker:
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], pixels[inl, :2].astype(np.float64), self.K, None, rvec, tvec)
         R, _ = cv2.Rodrigues(rvec)
         self._motion = (R, tvec.reshape(3))
+        self._motion_ok = True
         q = obj @ R.T + tvec.reshape(1, 3)
         good = q[:, 2] > 0
         z = np.where(good, q[:, 2], 1.0)
@@ -413,6 +427,24 @@ class StereoTracker:
         return ((np.abs(stereo[:, 3] - stereo[:, 1]) <= o.max_row_difference_px) & (disparity >= o.min_disparity_px)
                 & (disparity <= o.max_disparity_px) & self._inside(stereo[:, 2:]))
 
+    def _project(self, q):
+        """(n, 4) stereo pixels of points q (n, 3) in the left camera; NaN behind it."""
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        z = np.where(q[:, 2] > 0.1, q[:, 2], np.nan)
+        v = fy * q[:, 1] / z + cy
+        return np.stack([fx * q[:, 0] / z + cx, v, fx * (q[:, 0] - self.baseline_m) / z + cx, v], axis=1)
+
+    def _drift_ok(self, p_in_ref, pixels):
+        """True where the chained first triangulation reprojects within drift_threshold_px."""
+        o = self.options
+        if o.drift_threshold_px <= 0 or pixels.shape[0] == 0:
+            return np.ones(pixels.shape[0], bool)
+        q = p_in_ref @ self._cam_T_ref[:3, :3].T + self._cam_T_ref[:3, 3]
+        pred = self._project(q)
+        err = np.maximum(np.hypot(pred[:, 0] - pixels[:, 0], pred[:, 1] - pixels[:, 1]),
+                         np.hypot(pred[:, 2] - pixels[:, 2], pred[:, 3] - pixels[:, 3]))
+        return ~(err > o.drift_threshold_px)  # NaN (no reference point): kept
+
     def _detect(self, image, existing):
         """New corners (n, 2) in the cells below their share, away from ``existing`` (m, 2)."""
         cv2 = self._cv2
@@ -489,11 +521,11 @@ class StereoTracker:
             st.left_image += int(np.count_nonzero(ok & ~inside))
             ok &= inside
             prev, cur, tid = prev[ok], cur[ok], self._ids[ok]
-            tpl, A = self._templates[ok], self._A[ok]
+            tpl, A, ref = self._templates[ok], self._A[ok], self._p_in_ref[ok]
             disparity = prev[:, 0] - prev[:, 2]
             stereo, sok = self._stereo(pyr_l, pyr_r, cur, disparity, o.klt_levels)
             st.rejected_stereo_tracked += int(np.count_nonzero(~sok))
-            prev, stereo, tid, tpl, A = prev[sok], stereo[sok], tid[sok], tpl[sok], A[sok]
+            prev, stereo, tid, tpl, A, ref = prev[sok], stereo[sok], tid[sok], tpl[sok], A[sok], ref[sok]
             if use_affine:
                 pl, AL, okl = self._affine(grad_l, tpl, stereo[:, :2], A[:, 0])
                 pr, AR, okr = self._affine(grad_r, tpl, stereo[:, 2:], A[:, 1])
@@ -501,10 +533,21 @@ class StereoTracker:
                 A = np.stack([AL, AR], axis=1)
                 aok = okl & okr & self._stereo_ok(stereo)
                 st.rejected_affine += int(np.count_nonzero(~aok))
-                prev, stereo, tid, tpl, A = prev[aok], stereo[aok], tid[aok], tpl[aok], A[aok]
+                prev, stereo, tid, tpl, A, ref = prev[aok], stereo[aok], tid[aok], tpl[aok], A[aok], ref[aok]
             geo = self._geometric_inliers(prev, stereo)
             st.rejected_geometric += int(np.count_nonzero(~geo))
-            ids, pixels, templates, warps = tid[geo], stereo[geo], tpl[geo], A[geo]
+            ids, pixels, templates, warps, refs = tid[geo], stereo[geo], tpl[geo], A[geo], ref[geo]
+            if self._motion_ok:
+                step = np.eye(4)
+                step[:3, :3], step[:3, 3] = self._motion
+                self._cam_T_ref = step @ self._cam_T_ref
+                dok = self._drift_ok(refs, pixels)
+                st.rejected_drift += int(np.count_nonzero(~dok))
+                ids, pixels, templates, warps, refs = ids[dok], pixels[dok], templates[dok], warps[dok], refs[dok]
+            else:  # the chain is broken: no drift reference for the tracks alive now
+                refs = np.full_like(refs, np.nan)
+        else:
+            refs = np.zeros((0, 3))
 
         new = self._detect(left, pixels[:, :2])
         if new.shape[0]:
@@ -529,9 +572,11 @@ class StereoTracker:
             pixels = np.concatenate([pixels, stereo])
             templates = np.concatenate([templates, tpl])
             warps = np.concatenate([warps, A])
+            ref_T_cam = np.linalg.inv(self._cam_T_ref)
+            refs = np.concatenate([refs, self._triangulate(stereo) @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]])
         order = np.argsort(ids, kind="stable")
         ids, pixels = ids[order], pixels[order]
-        self._templates, self._A = templates[order], warps[order]
+        self._templates, self._A, self._p_in_ref = templates[order], warps[order], refs[order]
         self._ids, self._pixels, self._prev_pyramid = ids, pixels, pyr_l
         st.frames += 1
         st.tracks_per_frame.append(int(ids.size))
