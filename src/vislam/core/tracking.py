@@ -95,7 +95,7 @@ class TrackerOptions:
     #: Affine refinement against each track's first appearance: half-size of the template
     #: (px; the template is (2r+1)^2 pixels; 0 = off) and the largest residual it may leave,
     #: relative to the template's contrast (RMS / standard deviation).
-    affine_radius_px: int = 7
+    affine_radius_px: int = 6
     affine_max_residual: float = 0.4
     #: Gauss-Newton iterations of the affine refinement.
     affine_iterations: int = 12
@@ -365,34 +365,31 @@ class StereoTracker:
         A = A.astype(np.float64).copy()
         gain = np.ones(n)
         bias = np.zeros(n)
-        x, y = self._offsets[None, :, 0].astype(np.float64), self._offsets[None, :, 1].astype(np.float64)
-        T = templates.astype(np.float64)
-        J = np.empty((n, T.shape[1], 8))
-        J[..., 6] = -T
-        J[..., 7] = -1.0
+        x, y = self._offsets[None, :, 0], self._offsets[None, :, 1]
+        T_all = templates.astype(np.float32)
+        active = np.arange(n)  # tracks still moving by more than 1e-3 px per iteration
         for _ in range(o.affine_iterations):
-            S = self._sample(images, pts, A).astype(np.float64)  # (n, m, 3)
+            T = T_all[active]
+            S = self._sample(images, pts[active], A[active])  # (k, m, 3) float32
             Ix, Iy = S[..., 1], S[..., 2]
-            r = S[..., 0] - gain[:, None] * T - bias[:, None]
-            J[..., 0], J[..., 1] = Ix, Iy
-            J[..., 2], J[..., 3], J[..., 4], J[..., 5] = Ix * x, Ix * y, Iy * x, Iy * y
+            r = S[..., 0] - gain[active, None].astype(np.float32) * T - bias[active, None].astype(np.float32)
+            J = np.stack([Ix, Iy, Ix * x, Ix * y, Iy * x, Iy * y, -T, -np.ones_like(T)], axis=-1)  # (k, m, 8)
             Jt = J.transpose(0, 2, 1)
-            H = Jt @ J + 1e-6 * np.eye(8)
-            b = Jt @ r[..., None]
+            H = (Jt @ J).astype(np.float64) + 1e-6 * np.eye(8)
+            b = (Jt @ r[..., None]).astype(np.float64)
             try:
                 d = -np.linalg.solve(H, b)[..., 0]
             except np.linalg.LinAlgError:
                 return pts, A, np.zeros(n, bool)
             d = np.where(np.isfinite(d), d, 0.0)
-            pts += d[:, :2]
-            A[:, 0, 0] += d[:, 2]
-            A[:, 0, 1] += d[:, 3]
-            A[:, 1, 0] += d[:, 4]
-            A[:, 1, 1] += d[:, 5]
-            gain += d[:, 6]
-            bias += d[:, 7]
-            if np.all(np.abs(d[:, :2]).max(axis=1) < 1e-3):
+            pts[active] += d[:, :2]
+            A[active] += d[:, 2:6].reshape(-1, 2, 2)
+            gain[active] += d[:, 6]
+            bias[active] += d[:, 7]
+            active = active[np.abs(d[:, :2]).max(axis=1) >= 1e-3]
+            if active.size == 0:
                 break
+        T = T_all.astype(np.float64)
         img = images
         I = self._sample(img, pts, A)[..., 0].astype(np.float64)
         rms = np.sqrt(np.mean((I - gain[:, None] * T - bias[:, None]) ** 2, axis=1))
@@ -405,7 +402,8 @@ class StereoTracker:
     def _gradients(self, image):
         cv2 = self._cv2
         f = image.astype(np.float32)
-        return np.dstack([f, cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0, cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0])
+        return cv2.merge([f, cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, scale=0.125),
+                          cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)])
 
     def _predict(self, prev):
         """Predicted left pixels of the live tracks from the last motion (constant velocity)."""
