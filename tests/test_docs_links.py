@@ -9,7 +9,7 @@ import pytest
 
 from conftest import REPO_ROOT
 
-DOCS = ["README.md", "benchmarks/README.md"]
+DOCS = ["README.md", "benchmarks/README.md", "docs/frontend.md"]
 # [text](target) and [text](target "title"); images too
 LINK = re.compile(r"!?\[[^\]]*\]\(\s*([^)\s]+)(?:\s+\"[^\"]*\")?\s*\)")
 

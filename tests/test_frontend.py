@@ -286,3 +286,26 @@ def test_euroc_without_velocities_is_refused_by_the_filters(euroc_tracks, tmp_pa
     err = capsys.readouterr().err
     assert code == 2 and "holds no velocities" in err and "--velocities" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "run").exists() or not any((tmp_path / "run").iterdir())
+
+
+def test_run_and_check_on_bad_folders_give_one_line_and_write_nothing(tmp_path, capsys):
+    cases = _bad_folders(tmp_path)
+    for command in ("run", "check", "compare"):
+        for name in ("no layout", "unreadable image", "counts disagree"):
+            src, needle = cases[name]
+            out = tmp_path / f"{command}-{name.replace(' ', '_')}"
+            capsys.readouterr()
+            code = main([command, str(src), "--out", str(out)] + (["--quiet"] if command != "check" else []))
+            err = capsys.readouterr().err.strip().splitlines()
+            assert code == 2 and len(err) == 1 and needle in err[0], (command, name, err)
+            assert err[0].startswith(f"vislam {command}: error: ")
+            assert not out.exists(), (command, name)
+
+
+def test_run_refuses_an_euroc_folder_without_velocities_before_any_work(tmp_path, capsys):
+    if not (EUROC / "mav0").is_dir():
+        pytest.skip(f"shared data not available: {EUROC}")
+    code = main(["run", str(EUROC), "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "no IMU velocities" in err[0] and "--velocities" in err[0]
+    assert not (tmp_path / "o").exists()
