@@ -309,3 +309,14 @@ def test_run_refuses_an_euroc_folder_without_velocities_before_any_work(tmp_path
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "no IMU velocities" in err[0] and "--velocities" in err[0]
     assert not (tmp_path / "o").exists()
+
+
+def test_report_takes_an_image_folder(tmp_path, capsys):
+    src = _plain_folder(tmp_path / "plain", n=8)
+    out = tmp_path / "report"
+    code = main(["report", "--data", str(src), "--out", str(out), "--sim-frames", "0", "--no-smoother",
+                 "--noise-levels", "none", "--sequential", "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    text = (out / "report.md").read_text()
+    assert "images/plain" in text
+    assert (out / "tracks" / "plain" / "tracks.npz").is_file()

@@ -70,7 +70,7 @@ from vislam.core.sequence import Sequence
 from vislam.errors import DatasetError
 
 __all__ = ["StereoSource", "open_stereo_source", "is_image_folder", "track_source", "write_tracks", "load_recording",
-           "CACHE_NAME",
+           "CACHE_NAME", "image_layout_of",
            "read_kitti_calibration", "kitti_cam_T_imu", "LAYOUTS", "stats_path_for"]
 
 logger = logging.getLogger(__name__)
@@ -582,6 +582,15 @@ def _layout_of(root: Path) -> tuple[str, Path] | None:
     if (root / "left").is_dir() and (root / "right").is_dir():
         return "folder", root
     return None
+
+
+def image_layout_of(path) -> str | None:
+    """The layout (one of :data:`LAYOUTS`) a folder matches, or None."""
+    path = Path(path)
+    if not path.is_dir():
+        return None
+    found = _layout_of(path)
+    return None if found is None else found[0]
 
 
 def is_image_folder(path) -> bool:
