@@ -17,7 +17,9 @@ For each rendered date folder (``vislam simulate --images``):
 * ``vislam run DIR/sim_drive_*_sync --mode slam --gt DIR/groundtruth.kitti`` (the folder
   itself, as a user runs it) and ``vislam run DIR/sequence.npz --mode slam --gt ...``
   (the simulator's own observations of the same drive): ATE of each and their ratio;
-  dead reckoning (``--mode localization``) for scale.
+  dead reckoning (``--mode localization``) for scale; both SLAMs again told the drive's
+  IMU noise (``--told MPS RADPS``, default 0.5 0.05: with its defaults the filter trusts
+  the noisy velocities and ends near dead reckoning).
 
 With ``--euroc`` (default ``../shared/data/images/euroc_v1_01_first95`` when present):
 stereo row difference, depths, the drift of the full-length tracks from the common image
@@ -50,7 +52,7 @@ def _ate(run_dir: Path) -> float:
     return json.loads((run_dir / "summary.json").read_text())["evaluation"]["ape_rmse_m"]
 
 
-def rendered(folder: Path) -> dict:
+def rendered(folder: Path, noise: tuple[float, float] | None) -> dict:
     from vislam.core.render import camera_poses, track_reprojection_errors
     from vislam.tools.dataset_io import load_sequence
     from vislam.tools.trajectory_io import read_tum
@@ -73,13 +75,22 @@ def rendered(folder: Path) -> dict:
            "track_length_median": float(np.median(seq.observations.track_lengths())),
            "statistics": json.loads((folder / "tracks.tracking.json").read_text())["rejections"]}
     gt = folder / "groundtruth.kitti"
-    for name, data, mode in (("slam_tracked", drive, "slam"), ("slam_simulator", folder / "sequence.npz", "slam"),
-                             ("dead_reckoning", folder / "sequence.npz", "localization")):
+    # the filter with its defaults (the command as written) and told the drive's IMU noise (--told)
+    told = ["--velocity-noise", str(noise[0]), "--angular-noise", str(noise[1])] if noise else []
+    for name, data, mode, extra in (("slam_tracked", drive, "slam", []),
+                                    ("slam_simulator", folder / "sequence.npz", "slam", []),
+                                    ("slam_tracked_told", drive, "slam", told),
+                                    ("slam_simulator_told", folder / "sequence.npz", "slam", told),
+                                    ("dead_reckoning", folder / "sequence.npz", "localization", [])):
+        if extra == [] and name.endswith("_told"):
+            continue
         run = folder / f"run_{name}"
         if not (run / "summary.json").is_file():
-            _vislam("run", data, "--mode", mode, "--gt", gt, "--out", run, "--quiet")
+            _vislam("run", data, "--mode", mode, "--gt", gt, "--out", run, "--quiet", *extra)
         out[f"ate_{name}_m"] = _ate(run)
     out["ate_ratio_tracked_over_simulator"] = out["ate_slam_tracked_m"] / out["ate_slam_simulator_m"]
+    if "ate_slam_tracked_told_m" in out:
+        out["ate_ratio_told"] = out["ate_slam_tracked_told_m"] / out["ate_slam_simulator_told_m"]
     return out
 
 
@@ -113,16 +124,21 @@ def main() -> int:
     parser.add_argument("folders", nargs="*", type=Path, help="date folders written by vislam simulate --images")
     parser.add_argument("--euroc", type=Path, default=REPO.parent / "shared" / "data" / "images" / "euroc_v1_01_first95")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "frontend_accuracy.json")
+    parser.add_argument("--told", type=float, nargs=2, metavar=("MPS", "RADPS"), default=(0.5, 0.05),
+                        help="also run both SLAMs told this IMU noise (the drives' --velocity-noise/--angular-noise)")
     args = parser.parse_args()
     result = {"rendered": [], "euroc": None}
     for folder in args.folders:
-        r = rendered(folder)
+        r = rendered(folder, args.told)
         result["rendered"].append(r)
         print(f"{folder}: {r['frames']} frames, error median {r['error_median_px']:.3f} px, "
               f"{100 * r['beyond_3px_share']:.2f} % > 3 px, {r['landmarks_per_frame_mean']:.0f} landmarks/frame, "
               f"track length median {r['track_length_median']:g}; ATE SLAM tracked {r['ate_slam_tracked_m']:.3f} m, "
               f"simulator's {r['ate_slam_simulator_m']:.3f} m (ratio {r['ate_ratio_tracked_over_simulator']:.2f}), "
-              f"dead reckoning {r['ate_dead_reckoning_m']:.3f} m", flush=True)
+              f"dead reckoning {r['ate_dead_reckoning_m']:.3f} m; told the IMU noise: tracked "
+              f"{r.get('ate_slam_tracked_told_m', float('nan')):.3f} m, simulator's "
+              f"{r.get('ate_slam_simulator_told_m', float('nan')):.3f} m (ratio {r.get('ate_ratio_told', float('nan')):.2f})",
+              flush=True)
     if args.euroc and (args.euroc / "mav0").is_dir():
         e = euroc(args.euroc)
         result["euroc"] = e

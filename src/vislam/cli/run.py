@@ -121,7 +121,11 @@ def load_data(args, cache_dir):
                 raise ConfigError(f"{flag} is only used when DATA is an image folder (got {args.data})")
         return load_sequence(args.data), None
     from vislam.cli.track import tracker_options_from_args
+    from vislam.errors import OutputError
     from vislam.tools.frontend_io import load_recording
+
+    if cache_dir is not None and Path(cache_dir).exists() and not Path(cache_dir).is_dir():  # before the tracking
+        raise OutputError(f"{cache_dir}: exists and is not a directory (an output directory is expected)")
 
     options = tracker_options_from_args(getattr(args, "tracker_config", None))
     return load_recording(args.data, cache_dir, pair=getattr(args, "pair", "grey"),
