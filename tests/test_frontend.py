@@ -320,3 +320,20 @@ def test_report_takes_an_image_folder(tmp_path, capsys):
     text = (out / "report.md").read_text()
     assert "images/plain" in text
     assert (out / "tracks" / "plain" / "tracks.npz").is_file()
+
+
+def test_euroc_velocity_csv_is_interpolated_at_the_image_times(tmp_path):
+    if not (EUROC / "mav0").is_dir():
+        pytest.skip(f"shared data not available: {EUROC}")
+    bare = open_stereo_source(EUROC)
+    t = bare.timestamps_s
+    grid = np.linspace(t[0] - 1, t[-1] + 1, 37)
+    rows = ["t,vx,vy,vz,wx,wy,wz"] + [f"{g:.9f},{g - t[0]:.9f},1,2,0,0,{2 * (g - t[0]):.9f}" for g in grid]
+    csv = tmp_path / "v.csv"
+    csv.write_text("\n".join(rows) + "\n")
+    source = open_stereo_source(EUROC, velocities=csv)
+    np.testing.assert_allclose(source.velocities[:, 0], t - t[0], atol=1e-6)
+    np.testing.assert_allclose(source.velocities[:, 5], 2 * (t - t[0]), atol=1e-6)
+    csv.write_text("t,vx,vy,vz,wx,wy,wz\n" + f"{t[0]:.9f},0,0,0,0,0,0\n{t[10]:.9f},0,0,0,0,0,0\n")
+    with pytest.raises(DatasetError, match=r"v.csv: covers .*; expected it to cover the image times"):
+        open_stereo_source(EUROC, velocities=csv)
