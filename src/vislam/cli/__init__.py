@@ -23,6 +23,7 @@ from vislam.text import ERRORS as TEXT_ERRORS
 #: ``register(subparsers)``, which adds its parser and sets ``func`` (args -> exit code).
 COMMAND_MODULES = [
     "vislam.cli.demo",
+    "vislam.cli.track",
     "vislam.cli.run",
     "vislam.cli.compare",
     "vislam.cli.eval",

@@ -17,7 +17,6 @@ from vislam.cli import say_phase
 from vislam.core.check import check_sequence
 from vislam.errors import OutputError
 from vislam.tools.check_io import format_verdict, write_check_outputs
-from vislam.tools.dataset_io import load_sequence
 from vislam.tools.jsonio import dumps
 
 __all__ = ["register", "run"]
@@ -33,19 +32,26 @@ def register(subparsers) -> None:
         "under dead-reckoned poses. Prints one line per finding (OK / WARN / ERROR); with --out writes "
         "DIR/check.json and DIR/suggested.yaml, an options file for `vislam run --config`.",
     )
-    parser.add_argument("data", metavar="DATA", help="dataset file (.npz)")
+    parser.add_argument("data", metavar="DATA", help="dataset file (.npz), or an image folder (tracked first; with "
+                        "--out the tracks are cached as DIR/tracks.npz)")
     parser.add_argument("--out", metavar="DIR", help="write check.json and suggested.yaml into DIR")
     parser.add_argument("--json", action="store_true", help="print the whole result as JSON instead of the verdict")
+    from vislam.cli.track import add_source_arguments
+
+    add_source_arguments(parser)
     parser.set_defaults(func=run)
 
 
 def run(args) -> int:
     if args.out and Path(args.out).exists() and not Path(args.out).is_dir():  # before seconds of work
         raise OutputError(f"{args.out}: exists and is not a directory (an output directory is expected)")
-    sequence = load_sequence(args.data)
+    from vislam.cli.run import load_data
+
+    args.quiet = getattr(args, "quiet", False) or args.json
+    sequence, _ = load_data(args, args.out)
     if not args.json:
-        say_phase(f"checking {sequence.name}: timestamps, IMU noise and biases, speed units, IMU-camera rotation, "
-                  f"time offset, pixel noise, moving landmarks", quiet=False)
+        say_phase(f"checking {sequence.name}: timestamps, IMU noise and biases, speed units, IMU-camera rotation "
+                  f"and translation, time offset, pixel noise, moving landmarks", quiet=False)
     result = check_sequence(sequence)
     paths = write_check_outputs(result, args.out) if args.out else []
     text = dumps(result.to_dict()) if args.json else format_verdict(result)

@@ -60,7 +60,8 @@ def register(subparsers) -> None:
         "  vislam compare ../shared/data/dense/0027.npz --out cmp27d --auto \\\n"
         "      --gt ../shared/data/groundtruth/0027.txt   # noise and corrections from vislam check",
     )
-    parser.add_argument("data", metavar="DATA", help="dataset file (.npz)")
+    parser.add_argument("data", metavar="DATA", help="dataset file (.npz), or an image folder (tracked first, the "
+                        "tracks cached as DIR/tracks.npz)")
     parser.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")
     parser.add_argument("--methods", metavar="LIST", default=",".join(DEFAULT_METHODS),
                         help="comma-separated methods to run: separate (localization + mapping), slam, smoother, "
@@ -70,6 +71,9 @@ def register(subparsers) -> None:
     add_filter_arguments(parser)
     add_noise_injection_arguments(parser)
     add_ground_truth_arguments(parser)
+    from vislam.cli.track import add_source_arguments
+
+    add_source_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     parser.set_defaults(func=run)
 
@@ -123,7 +127,7 @@ def format_comparison(comparison, content: dict, out_dir) -> str:
 
 def run(args) -> int:
     from vislam.tools.comparison import dataset_record, parse_methods, run_comparison, runs_of, write_comparison
-    from vislam.tools.dataset_io import load_sequence
+    from vislam.cli.run import load_data
     from vislam.tools.outputs import OutputStage, process_start_time
 
     start_time = process_start_time() or _COMMAND_START
@@ -132,7 +136,7 @@ def run(args) -> int:
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     data = Path(args.data)
-    sequence = load_sequence(data)
+    sequence, _ = load_data(args, args.out)
     gt, gt_info = ground_truth_from_args(args, sequence)
     noise_info = auto = None
     if noise is not None:  # injected once, here, so that --auto checks what the methods will see

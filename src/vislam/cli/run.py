@@ -33,7 +33,7 @@ from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAME_CHOICES
 __all__ = ["register", "run", "format_summary", "format_evaluation_line", "make_progress", "finish",
            "interrupted_message", "FLAG_FIELDS", "NOISE_FLAGS", "add_filter_arguments", "add_noise_injection_arguments",
            "add_ground_truth_arguments", "add_rerun_arguments", "open_rerun_recorder", "options_from_args",
-           "noise_spec_from_args", "ground_truth_from_args"]
+           "noise_spec_from_args", "ground_truth_from_args", "load_data"]
 
 _COMMAND_START = time.time()
 
@@ -86,7 +86,8 @@ def register(subparsers) -> None:
         "defaults < --config FILE < --robust < the other flags. The --add-* flags add noise to the data (seeded); "
         "the filter's own noise model is set by --velocity-noise etc.",
     )
-    parser.add_argument("data", metavar="DATA", help="dataset file (.npz)")
+    parser.add_argument("data", metavar="DATA", help="dataset file (.npz), or an image folder (KITTI raw drive, "
+                        "EuRoC, plain; tracked first, the tracks cached as DIR/tracks.npz)")
     parser.add_argument("--mode", choices=MODES, default="slam",
                         help="localization (IMU only), mapping (landmarks from known poses), slam (the report's EKF) "
                         "or smoother (fixed-lag smoother on GTSAM over the same measurements) (default: slam)")
@@ -101,8 +102,35 @@ def register(subparsers) -> None:
                         help="mapping only: known world_T_imu poses, TUM or KITTI, one per frame (default: the "
                         "localization trajectory)")
     add_rerun_arguments(parser)
+    from vislam.cli.track import add_source_arguments
+
+    add_source_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     parser.set_defaults(func=run)
+
+
+def load_data(args, cache_dir):
+    """(sequence, info) of DATA: a dataset npz, or an image folder tracked first (the tracks
+    cached in ``cache_dir``; :func:`vislam.tools.frontend_io.load_recording`)."""
+    from vislam.tools.dataset_io import load_sequence
+
+    if not Path(args.data).is_dir():
+        for flag, value in (("--velocities", getattr(args, "velocities", None)),
+                            ("--tracker-config", getattr(args, "tracker_config", None))):
+            if value is not None:
+                raise ConfigError(f"{flag} is only used when DATA is an image folder (got {args.data})")
+        return load_sequence(args.data), None
+    from vislam.cli.track import tracker_options_from_args
+    from vislam.errors import OutputError
+    from vislam.tools.frontend_io import load_recording
+
+    if cache_dir is not None and Path(cache_dir).exists() and not Path(cache_dir).is_dir():  # before the tracking
+        raise OutputError(f"{cache_dir}: exists and is not a directory (an output directory is expected)")
+
+    options = tracker_options_from_args(getattr(args, "tracker_config", None))
+    return load_recording(args.data, cache_dir, pair=getattr(args, "pair", "grey"),
+                          velocities=getattr(args, "velocities", None), tracker_options=options,
+                          progress_factory=lambda total, desc: make_progress(total, desc, args.quiet))
 
 
 def add_rerun_arguments(parser) -> None:
@@ -421,7 +449,6 @@ def run(args) -> int:
     from vislam.core.results import run_warnings
     from vislam.tools.comparison import evaluate_run, injected_noise_record, stage_evaluation
     from vislam.tools.config import load_known_poses
-    from vislam.tools.dataset_io import load_sequence
     from vislam.tools.outputs import OutputStage, process_start_time, write_run_outputs
 
     start_time = process_start_time() or _COMMAND_START
@@ -436,12 +463,14 @@ def run(args) -> int:
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     data = Path(args.data)
-    sequence = load_sequence(data)
+    sequence, tracking = load_data(args, args.out)
     poses = load_known_poses(args.poses, sequence) if args.poses else None
     gt, gt_info = ground_truth_from_args(args, sequence)  # checked before any work
     dataset = {"name": sequence.name, "path": str(data.resolve()), "frames": sequence.n_frames,
                "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s,
                "cam_T_imu": sequence.cam_T_imu.tolist()}
+    if tracking is not None:
+        dataset["tracking"] = {k: tracking[k] for k in ("source", "layout", "cache", "cache_reused")}
     if args.mode == "mapping":
         dataset["poses"] = str(Path(args.poses).resolve()) if args.poses else "localization"
     extra = {}

@@ -96,6 +96,10 @@ def register(subparsers) -> None:
                         "axes)")
     faults.add_argument("--lever-arm-swapped", action="store_true", default=_DEFAULTS.lever_arm_swapped,
                         help="record imu_T_cam's translation as cam_T_imu's (the KITTI course files' mix-up)")
+    parser.add_argument("--images", action="store_true",
+                        help="also render the drive's rectified grey stereo images (1242x375, textured road and "
+                        "facades) and write DIR as a KITTI raw date folder: calib_*.txt and sim_drive_SEED_sync/ "
+                        "(image_00, image_01, oxts) beside the files above (see docs/frontend.md)")
     parser.set_defaults(func=run)
 
 
@@ -150,6 +154,16 @@ def run(args) -> int:
                           f"(it grows with the square of the frames: landmarks x frames), more than --max-memory "
                           f"{args.max_memory:g} GB; simulate at most {most} frames, or raise --max-memory")
     drive = simulate_drive(options)
-    paths = write_simulated_drive(drive, args.out)
+    if getattr(args, "images", False):
+        from vislam.cli.run import make_progress
+        from vislam.tools.simulate_images import write_rendered_drive
+
+        progress, close = make_progress(drive.n_frames, "render", False)
+        try:
+            paths = write_rendered_drive(drive, args.out, progress=progress)
+        finally:
+            close()
+    else:
+        paths = write_simulated_drive(drive, args.out)
     print(format_summary(drive.statistics(), paths))
     return 0

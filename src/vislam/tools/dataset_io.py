@@ -420,6 +420,10 @@ def _read_velocity(reader: _NpzReader, key: str, tkey: str, T: int, unit: str) -
 
     v, _ = reader.read_array(key, check)
     bad = ~np.isfinite(v)
+    if bad.size and np.isnan(v).all():  # vislam track without velocities (EuRoC): never run on zeros
+        raise reader.error(key, f"holds no velocities (NaN throughout: tracked from images without IMU velocities, "
+                           f"e.g. EuRoC, whose IMU gives accelerations); expected {unit}: track again with "
+                           f"`vislam track SOURCE --velocities FILE.csv` (t,vx,vy,vz,wx,wy,wz)")
     if bad.any():
         r, c = np.unravel_index(_first_index(bad), v.shape)
         raise reader.error(key, f"has a non-finite value {v[r, c]} at row {r}, frame {c}; expected finite {unit}")

@@ -217,6 +217,17 @@ def discover_datasets(data_dir) -> tuple[list[DatasetInput], list[str]]:
     notes = []
     found: list[DatasetInput] = []
     gt_dir = data_dir / "groundtruth"
+    from vislam.tools.frontend_io import image_layout_of
+
+    if image_layout_of(data_dir) is not None:  # the folder is one image recording (e.g. a KITTI raw drive)
+        gt = next((p for p in (gt_dir / f"{data_dir.name}.txt", data_dir.parent / "groundtruth.kitti") if p.is_file()),
+                  None)
+        return [DatasetInput("images", data_dir, ground_truth_path=gt)], notes
+    images = data_dir / "images"
+    if images.is_dir():  # image folders (KITTI raw drives, EuRoC, plain), tracked first
+        for p in sorted(q for q in images.iterdir() if q.is_dir() and image_layout_of(q) is not None):
+            gt = gt_dir / f"{p.name}.txt"
+            found.append(DatasetInput("images", p, ground_truth_path=gt if gt.is_file() else None))
     for kind in KINDS:
         folder = data_dir / kind
         if not folder.is_dir():
@@ -544,8 +555,9 @@ def generate_report(data_dir, out_dir, settings: ReportSettings | None = None,
     inputs, notes = discover_datasets(data_dir)
     if not inputs:
         raise DatasetError(f"{data_dir}: no usable dataset: expected .npz files in {data_dir / 'sparse'} and/or "
-                           f"{data_dir / 'dense'} (the layout of the shared data)")
-    usable = _load_inputs(inputs, notes)
+                           f"{data_dir / 'dense'} (the layout of the shared data), image folders in "
+                           f"{data_dir / 'images'}, or an image folder itself (docs/frontend.md)")
+    usable = _load_inputs(inputs, notes, cache_dir=out_dir / "tracks")
     if not usable:
         raise DatasetError(f"{data_dir}: no usable dataset ({'; '.join(n for n in notes if n.startswith('skipped'))})")
     n_sparse = sum(d.kind == "sparse" for d in usable)
@@ -606,14 +618,19 @@ def _command(data_dir: Path, out_dir: Path, settings: ReportSettings) -> str:
     return cmd
 
 
-def _load_inputs(inputs: list[DatasetInput], notes: list[str]) -> list[DatasetInput]:
-    """Load every dataset and its ground truth; problems become notes."""
+def _load_inputs(inputs: list[DatasetInput], notes: list[str], cache_dir: Path | None = None) -> list[DatasetInput]:
+    """Load every dataset and its ground truth; problems become notes. Image folders are
+    tracked first, their tracks cached in ``cache_dir/<name>/tracks.npz``."""
     from vislam.tools.dataset_io import load_sequence
+    from vislam.tools.frontend_io import load_recording
 
     usable = []
     for d in inputs:
         try:
-            d.sequence = load_sequence(d.path)
+            if d.kind == "images":
+                d.sequence, _ = load_recording(d.path, None if cache_dir is None else cache_dir / d.path.name)
+            else:
+                d.sequence = load_sequence(d.path)
         except VislamError as exc:
             notes.append(f"skipped {d.path}: {exc}")
             continue

@@ -1,0 +1,605 @@
+"""A stereo feature tracker: rectified stereo image pairs -> stereo feature tracks.
+
+Pure image computation on OpenCV (no file I/O): :class:`StereoTracker` takes one
+rectified grey pair at a time and returns the stereo observations of that frame,
+``(track_ids, pixels)`` with pixels ``[uL, vL, uR, vR]`` in the rectified images — the
+rows of :class:`vislam.core.sequence.StereoObservations`. It keeps only the previous
+frame (its left image, its live tracks and their triangulation), so its memory does
+not depend on the length of the recording.
+
+Each frame:
+
+1. **Temporal tracking** — pyramidal Lucas-Kanade (KLT) of the live tracks from the
+   previous left image into the new one, then back; a track whose round trip misses its
+   start by more than ``fb_threshold_px`` is lost (forward-backward check).
+2. **Stereo matching** — KLT from the left image into the right one, started at the
+   track's previous disparity (new corners: at zero, with a deeper pyramid), then back.
+   A match is kept only on the epipolar line of the rectified pair (``|vR - vL| <=
+   max_row_difference_px``), with a disparity ``uL - uR`` in
+   ``[min_disparity_px, max_disparity_px]`` and a round trip within ``fb_threshold_px``.
+   A track without a stereo match ends (tracks are contiguous, as the dataset format wants).
+2b. **Affine refinement** — each track keeps the (2r+1)² template of its first left
+   appearance; every new left and right position is refined by Gauss-Newton over an
+   affine warp of that template (plus gain and bias) into the image, so the position
+   follows the surface point the track started on rather than drifting with the
+   translation-only KLT (whose estimate is pulled by the flow elsewhere in its window
+   under perspective and scale change). A track whose warp leaves a residual above
+   ``affine_max_residual`` of the template's contrast ends.
+3. **Geometric check** — the previous frame's stereo triangulation of the tracked
+   points against their new left pixels: P3P in RANSAC (``cv2.solvePnPRansac``) gives the
+   camera motion; a track whose predicted left *or* right pixel is more than
+   ``ransac_threshold_px`` from its measurement is rejected (catches wrong temporal and
+   wrong stereo matches alike, and points on moving objects).
+3b. **Drift check** — the camera poses chained from the frame-to-frame P3P motions carry
+   each track's first stereo triangulation to the current frame; a track whose left or right
+   position is more than ``drift_threshold_px`` from it ends.
+4. **Detection** — Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) at least
+   ``min_distance_px`` from every live track, spread over a ``grid_cols x grid_rows``
+   grid: each cell is filled up to its share of ``target_features``. New corners get new
+   ids (0, 1, 2, ... in order of detection; ids are never reused).
+
+Frames: pixels (u right, v down) of the rectified left/right images; 3-D points in the
+left camera frame of the previous image (x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+import numpy as np
+
+from vislam.errors import ConfigError
+
+__all__ = ["TrackerOptions", "TrackerStatistics", "StereoTracker", "require_cv2"]
+
+
+def require_cv2():
+    """The ``cv2`` module, or a ConfigError saying how to install it."""
+    try:
+        import cv2
+    except ImportError as exc:  # pragma: no cover - the test extra installs it
+        raise ConfigError("the visual front end needs OpenCV: pip install 'vislam[frontend]' "
+                          f"(opencv-python-headless; import failed: {exc})") from None
+    return cv2
+
+
+@dataclass(frozen=True)
+class TrackerOptions:
+    """Options of :class:`StereoTracker` (units in the names; defaults documented inline)."""
+
+    #: Number of live tracks the detector tops up to, spread over the grid.
+    target_features: int = 300
+    #: Detection grid: columns x rows of cells, each filled to its share of target_features.
+    grid_cols: int = 10
+    grid_rows: int = 4
+    #: Shi-Tomasi quality level (fraction of the best corner's score).
+    quality_level: float = 0.005
+    #: Smallest distance between two corners / a new corner and a live track (px).
+    min_distance_px: float = 12.0
+    #: Shi-Tomasi block size (px).
+    block_size_px: int = 5
+    #: Corners are detected this far from the image border (px).
+    border_px: int = 10
+    #: ... and not in a band of this fraction of the width at the left and right edges, where
+    #: forward motion takes features out of view within a frame or two (0 = detect up to border_px).
+    side_band_fraction: float = 0.15
+    #: KLT window side (px, odd).
+    klt_window_px: int = 21
+    #: Refinement of every KLT match on the full image with this smaller window (px, odd; 0 =
+    #: off): a large window finds the match, a small one centred on the corner places it, so
+    #: the flow elsewhere in the large window (perspective, divergence) does not shift it.
+    refine_window_px: int = 0
+    #: Affine refinement against each track's first appearance: half-size of the template
+    #: (px; the template is (2r+1)^2 pixels; 0 = off) and the largest residual it may leave,
+    #: relative to the template's contrast (RMS / standard deviation).
+    affine_radius_px: int = 6
+    affine_max_residual: float = 0.4
+    #: Gauss-Newton iterations of the affine refinement.
+    affine_iterations: int = 12
+    #: KLT pyramid levels above the full image (temporal tracking).
+    klt_levels: int = 3
+    #: KLT pyramid levels of the stereo match of a new corner (no disparity guess yet).
+    stereo_levels: int = 4
+    #: KLT iterations per level and the convergence threshold (px).
+    klt_iterations: int = 30
+    klt_epsilon_px: float = 0.01
+    #: Forward-backward check: largest round-trip error of a KLT match (px).
+    fb_threshold_px: float = 1.0
+    #: Epipolar constraint of the rectified pair: largest |vR - vL| (px).
+    max_row_difference_px: float = 1.0
+    #: Disparity range uL - uR accepted (px); must be > 0.
+    min_disparity_px: float = 0.5
+    max_disparity_px: float = 250.0
+    #: Geometric check: largest reprojection error in either image (px); 0 turns it off.
+    ransac_threshold_px: float = 1.5
+    #: Drift check: a track's first stereo triangulation, carried to the current frame by the
+    #: chained P3P motions, must reproject within this many pixels of the current left and right
+    #: positions (catches slow slides, e.g. of corners made by an occluding edge); 0 = off.
+    drift_threshold_px: float = 2.0
+    #: RANSAC iterations of the geometric check.
+    ransac_iterations: int = 100
+    #: Fewest tracked points for the geometric check (fewer: the check is skipped).
+    ransac_min_points: int = 12
+    #: Tracks seen in fewer frames are left out of the output (see :func:`finish_tracks`).
+    min_track_length: int = 3
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type in ("int", int):
+                if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                    raise ConfigError(f"{f.name} must be an integer, got {value!r}")
+                object.__setattr__(self, f.name, int(value))
+                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px") else 1):
+                    raise ConfigError(f"{f.name} must be >= 1, got {value!r}")
+            else:
+                if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                        or not math.isfinite(value) or value < 0:
+                    raise ConfigError(f"{f.name} must be a finite number >= 0, got {value!r}")
+                object.__setattr__(self, f.name, float(value))
+        if self.klt_window_px % 2 == 0 or self.klt_window_px < 3:
+            raise ConfigError(f"klt_window_px must be odd and >= 3, got {self.klt_window_px}")
+        if self.refine_window_px and (self.refine_window_px % 2 == 0 or self.refine_window_px < 3):
+            raise ConfigError(f"refine_window_px must be 0 (off) or odd and >= 3, got {self.refine_window_px}")
+        if not 0 < self.quality_level < 1:
+            raise ConfigError(f"quality_level must be in (0, 1), got {self.quality_level}")
+        if not 0 < self.min_disparity_px < self.max_disparity_px:
+            raise ConfigError(f"need 0 < min_disparity_px < max_disparity_px, got {self.min_disparity_px} "
+                              f"and {self.max_disparity_px}")
+        if self.fb_threshold_px <= 0:
+            raise ConfigError(f"fb_threshold_px must be > 0, got {self.fb_threshold_px}")
+        if not 0 <= self.side_band_fraction < 0.4:
+            raise ConfigError(f"side_band_fraction must be in [0, 0.4), got {self.side_band_fraction}")
+        if self.ransac_min_points < 4:
+            raise ConfigError(f"ransac_min_points must be >= 4 (P3P + 1), got {self.ransac_min_points}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any], source: str = "options") -> "TrackerOptions":
+        """Build from a mapping; unknown keys and bad values raise ConfigError naming ``source``."""
+        if not isinstance(values, Mapping):
+            raise ConfigError(f"{source}: expected a mapping of tracker option names to values, "
+                              f"got {type(values).__name__}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(str(k) for k in values if k not in known)
+        if unknown:
+            raise ConfigError(f"{source}: unknown tracker option(s) {', '.join(unknown)}; "
+                              f"known: {', '.join(sorted(known))}")
+        try:
+            return cls(**dict(values))
+        except (ConfigError, TypeError) as exc:
+            raise ConfigError(f"{source}: {exc}") from None
+
+
+@dataclass
+class TrackerStatistics:
+    """Counts accumulated by :class:`StereoTracker` over the frames it processed."""
+
+    frames: int = 0
+    #: observations output per frame (list, one entry per frame)
+    tracks_per_frame: list = field(default_factory=list)
+    detected: int = 0  # new corners detected
+    lost_temporal: int = 0  # KLT failed or forward-backward check failed
+    rejected_stereo_new: int = 0  # new corners without a stereo match
+    rejected_stereo_tracked: int = 0  # tracked points whose stereo match failed (track ended)
+    rejected_geometric: int = 0  # rejected by the P3P-RANSAC check
+    rejected_affine: int = 0  # the affine refinement against the first appearance failed
+    rejected_drift: int = 0  # drifted from the track's first triangulation
+    left_image: int = 0  # left the image
+
+    def to_dict(self, track_lengths: np.ndarray | None = None) -> dict[str, Any]:
+        counts = np.asarray(self.tracks_per_frame, dtype=float)
+        out: dict[str, Any] = {
+            "frames": self.frames,
+            "tracks_per_frame": {
+                "mean": float(counts.mean()) if counts.size else 0.0,
+                "min": int(counts.min()) if counts.size else 0,
+                "median": float(np.median(counts)) if counts.size else 0.0,
+                "max": int(counts.max()) if counts.size else 0,
+            },
+            "detected": self.detected,
+            "rejections": {
+                "forward_backward": self.lost_temporal,
+                "left_image": self.left_image,
+                "stereo_tracked": self.rejected_stereo_tracked,
+                "stereo_new": self.rejected_stereo_new,
+                "geometric": self.rejected_geometric,
+                "appearance": self.rejected_affine,
+                "drift": self.rejected_drift,
+            },
+        }
+        if track_lengths is not None:
+            lengths = np.asarray(track_lengths)
+            out["tracks"] = int(lengths.size)
+            out["track_length"] = {
+                "mean": float(lengths.mean()) if lengths.size else 0.0,
+                "median": float(np.median(lengths)) if lengths.size else 0.0,
+                "max": int(lengths.max()) if lengths.size else 0,
+            }
+        return out
+
+
+class StereoTracker:
+    """Track stereo features through rectified grey image pairs (see the module docstring).
+
+    Args:
+        K: (3, 3) intrinsics of the rectified left camera (px); the right camera has the
+            same intrinsics, ``baseline_m`` to the right.
+        baseline_m: stereo baseline (m), > 0.
+        options: :class:`TrackerOptions`.
+    """
+
+    def __init__(self, K, baseline_m: float, options: TrackerOptions | None = None):
+        self._cv2 = require_cv2()
+        self.options = options or TrackerOptions()
+        self.K = np.asarray(K, dtype=np.float64)
+        self.baseline_m = float(baseline_m)
+        self.stats = TrackerStatistics()
+        self._next_id = 0
+        self._prev_pyramid = None
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._pixels = np.zeros((0, 4))  # [uL, vL, uR, vR] of the live tracks in the previous frame
+        self._shape = None
+        self._motion = None  # (R, t) of the last frame-to-frame camera motion, q_new = R q_old + t
+        self._motion_ok = False  # whether the last frame's P3P check found the motion
+        self._cam_T_ref = np.eye(4)  # chained motions: current camera from the first frame's camera
+        self._p_in_ref = np.zeros((0, 3))  # per track: first triangulation in the first frame's camera (NaN: none)
+        r = self.options.affine_radius_px
+        g = np.arange(-r, r + 1, dtype=np.float32)
+        gx, gy = np.meshgrid(g, g)
+        self._offsets = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (m, 2)
+        self._templates = np.zeros((0, self._offsets.shape[0]), np.float32)
+        self._A = np.zeros((0, 2, 2, 2))  # per track: left and right warps
+        o = self.options
+        self._criteria = (self._cv2.TERM_CRITERIA_COUNT | self._cv2.TERM_CRITERIA_EPS, o.klt_iterations,
+                          o.klt_epsilon_px)
+
+    # ------------------------------------------------------------------ helpers
+    def _klt(self, pyr_a, pyr_b, pts_a, guess_b, levels):
+        """Forward KLT a -> b from ``guess_b``, then back; (pts_b, ok, fb_error)."""
+        cv2 = self._cv2
+        w = self.options.klt_window_px
+        n = pts_a.shape[0]
+        if n == 0:
+            return np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0)
+        a = np.ascontiguousarray(pts_a, dtype=np.float32).reshape(-1, 1, 2)
+        g = np.ascontiguousarray(guess_b, dtype=np.float32).reshape(-1, 1, 2)
+        pb, st, _ = cv2.calcOpticalFlowPyrLK(pyr_a, pyr_b, a, g.copy(), winSize=(w, w), maxLevel=levels,
+                                             criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        pa, st2, _ = cv2.calcOpticalFlowPyrLK(pyr_b, pyr_a, pb, a.copy(), winSize=(w, w), maxLevel=levels,
+                                              criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        r = self.options.refine_window_px
+        if r:
+            pb, st3, _ = cv2.calcOpticalFlowPyrLK(pyr_a, pyr_b, a, pb.copy(), winSize=(r, r), maxLevel=0,
+                                                  criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            pa, st4, _ = cv2.calcOpticalFlowPyrLK(pyr_b, pyr_a, pb, pa.copy(), winSize=(r, r), maxLevel=0,
+                                                  criteria=self._criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            st = st & st3
+            st2 = st2 & st4
+        pb = pb.reshape(-1, 2).astype(np.float64)
+        fb = np.linalg.norm(pa.reshape(-1, 2).astype(np.float64) - np.asarray(pts_a, np.float64), axis=1)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(pb).all(axis=1)
+        return pb, ok, fb
+
+    def _inside(self, pts):
+        h, w = self._shape
+        m = float(max(2, self.options.klt_window_px // 2 // 2))
+        return (pts[:, 0] >= m) & (pts[:, 0] <= w - 1 - m) & (pts[:, 1] >= m) & (pts[:, 1] <= h - 1 - m)
+
+    def _stereo(self, pyr_l, pyr_r, left, disparity_guess, levels):
+        """Stereo match of left pixels (n, 2); (pixels (n, 4), ok)."""
+        o = self.options
+        guess = left.copy()
+        guess[:, 0] -= disparity_guess
+        right, ok, fb = self._klt(pyr_l, pyr_r, left, guess, levels)
+        if left.shape[0] == 0:
+            return np.zeros((0, 4)), ok
+        disparity = left[:, 0] - right[:, 0]
+        ok &= fb <= o.fb_threshold_px
+        ok &= np.abs(right[:, 1] - left[:, 1]) <= o.max_row_difference_px
+        ok &= (disparity >= o.min_disparity_px) & (disparity <= o.max_disparity_px)
+        ok &= self._inside(right)
+        return np.concatenate([left, right], axis=1), ok
+
+    def _triangulate(self, pixels):
+        """(n, 3) points in the left camera frame from stereo pixels (n, 4)."""
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        d = pixels[:, 0] - pixels[:, 2]
+        z = fx * self.baseline_m / d
+        return np.stack([z * (pixels[:, 0] - cx) / fx, z * (pixels[:, 1] - cy) / fy, z], axis=1)
+
+    def _geometric_inliers(self, p_prev, pixels):
+        """True for tracks consistent with one rigid motion (see step 3 of the module docstring)."""
+        cv2 = self._cv2
+        o = self.options
+        n = pixels.shape[0]
+        self._motion_ok = False
+        if o.ransac_threshold_px <= 0 or n < o.ransac_min_points:
+            return np.ones(n, bool)
+        obj = self._triangulate(p_prev)
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            obj.astype(np.float64), pixels[:, :2].astype(np.float64), self.K, None,
+            iterationsCount=o.ransac_iterations, reprojectionError=o.ransac_threshold_px, confidence=0.999,
+            flags=cv2.SOLVEPNP_P3P)
+        if not ok or inliers is None or len(inliers) < 4:
+            return np.ones(n, bool)  # no consensus: keep them rather than guess (logged in the stats by callers)
+        inl = inliers.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], pixels[inl, :2].astype(np.float64), self.K, None, rvec, tvec)
+        R, _ = cv2.Rodrigues(rvec)
+        self._motion = (R, tvec.reshape(3))
+        self._motion_ok = True
+        q = obj @ R.T + tvec.reshape(1, 3)
+        good = q[:, 2] > 0
+        z = np.where(good, q[:, 2], 1.0)
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        uL = fx * q[:, 0] / z + cx
+        v = fy * q[:, 1] / z + cy
+        uR = fx * (q[:, 0] - self.baseline_m) / z + cx
+        err = np.maximum(np.hypot(uL - pixels[:, 0], v - pixels[:, 1]), np.hypot(uR - pixels[:, 2], v - pixels[:, 3]))
+        return good & (err <= o.ransac_threshold_px)
+
+    def _sample(self, image, pts, A):
+        """(n, m[, channels]) values of ``image`` at ``pts + A @ offsets`` (bilinear)."""
+        cv2 = self._cv2
+        if pts.shape[0] == 0:
+            return np.zeros((0, self._offsets.shape[0]) + image.shape[2:], np.float32)
+        ox, oy = self._offsets[None, :, 0], self._offsets[None, :, 1]
+        mx = (pts[:, 0:1] + A[:, 0, 0:1] * ox + A[:, 0, 1:2] * oy).astype(np.float32)
+        my = (pts[:, 1:2] + A[:, 1, 0:1] * ox + A[:, 1, 1:2] * oy).astype(np.float32)
+        return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def _affine(self, images, templates, pts, A):
+        """Gauss-Newton of ``image(pts + A x) = g T(x) + c`` over (pts, A, g, c) per track.
+
+        ``images``: (h, w, 3) float32 of the image and its d/du, d/dv. Returns (pts, A, ok)."""
+        o = self.options
+        n = pts.shape[0]
+        if n == 0:
+            return pts, A, np.zeros(0, bool)
+        pts = pts.astype(np.float64).copy()
+        A = A.astype(np.float64).copy()
+        gain = np.ones(n)
+        bias = np.zeros(n)
+        x, y = self._offsets[None, :, 0], self._offsets[None, :, 1]
+        T_all = templates.astype(np.float32)
+        active = np.arange(n)  # tracks still moving by more than 1e-3 px per iteration
+        for _ in range(o.affine_iterations):
+            T = T_all[active]
+            S = self._sample(images, pts[active], A[active])  # (k, m, 3) float32
+            Ix, Iy = S[..., 1], S[..., 2]
+            r = S[..., 0] - gain[active, None].astype(np.float32) * T - bias[active, None].astype(np.float32)
+            J = np.stack([Ix, Iy, Ix * x, Ix * y, Iy * x, Iy * y, -T, -np.ones_like(T)], axis=-1)  # (k, m, 8)
+            Jt = J.transpose(0, 2, 1)
+            H = (Jt @ J).astype(np.float64) + 1e-6 * np.eye(8)
+            b = (Jt @ r[..., None]).astype(np.float64)
+            try:
+                d = -np.linalg.solve(H, b)[..., 0]
+            except np.linalg.LinAlgError:
+                return pts, A, np.zeros(n, bool)
+            d = np.where(np.isfinite(d), d, 0.0)
+            pts[active] += d[:, :2]
+            A[active] += d[:, 2:6].reshape(-1, 2, 2)
+            gain[active] += d[:, 6]
+            bias[active] += d[:, 7]
+            active = active[np.abs(d[:, :2]).max(axis=1) >= 1e-3]
+            if active.size == 0:
+                break
+        T = T_all.astype(np.float64)
+        img = images
+        I = self._sample(img, pts, A)[..., 0].astype(np.float64)
+        rms = np.sqrt(np.mean((I - gain[:, None] * T - bias[:, None]) ** 2, axis=1))
+        contrast = T.std(axis=1) + 1e-6
+        det = np.linalg.det(A)
+        ok = (rms / contrast <= o.affine_max_residual) & (det > 0.2) & (det < 5.0) & (gain > 0.3) & (gain < 3.0)
+        ok &= np.isfinite(pts).all(axis=1) & self._inside(pts)
+        return pts, A, ok
+
+    def _gradients(self, image):
+        cv2 = self._cv2
+        f = image.astype(np.float32)
+        return cv2.merge([f, cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, scale=0.125),
+                          cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)])
+
+    def _predict(self, prev):
+        """Predicted left pixels of the live tracks from the last motion (constant velocity)."""
+        if self._motion is None or prev.shape[0] == 0:
+            return prev[:, :2].copy()
+        R, t = self._motion
+        q = self._triangulate(prev) @ R.T + t
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        good = q[:, 2] > 0.1
+        z = np.where(good, q[:, 2], 1.0)
+        pred = np.stack([fx * q[:, 0] / z + cx, fy * q[:, 1] / z + cy], axis=1)
+        h, w = self._shape
+        good &= (pred[:, 0] > -w) & (pred[:, 0] < 2 * w) & (pred[:, 1] > -h) & (pred[:, 1] < 2 * h)
+        return np.where(good[:, None], pred, prev[:, :2])
+
+    def _stereo_ok(self, stereo):
+        o = self.options
+        disparity = stereo[:, 0] - stereo[:, 2]
+        return ((np.abs(stereo[:, 3] - stereo[:, 1]) <= o.max_row_difference_px) & (disparity >= o.min_disparity_px)
+                & (disparity <= o.max_disparity_px) & self._inside(stereo[:, 2:]))
+
+    def _project(self, q):
+        """(n, 4) stereo pixels of points q (n, 3) in the left camera; NaN behind it."""
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        z = np.where(q[:, 2] > 0.1, q[:, 2], np.nan)
+        v = fy * q[:, 1] / z + cy
+        return np.stack([fx * q[:, 0] / z + cx, v, fx * (q[:, 0] - self.baseline_m) / z + cx, v], axis=1)
+
+    def _drift_ok(self, p_in_ref, pixels):
+        """True where the chained first triangulation reprojects within drift_threshold_px."""
+        o = self.options
+        if o.drift_threshold_px <= 0 or pixels.shape[0] == 0:
+            return np.ones(pixels.shape[0], bool)
+        q = p_in_ref @ self._cam_T_ref[:3, :3].T + self._cam_T_ref[:3, 3]
+        pred = self._project(q)
+        err = np.maximum(np.hypot(pred[:, 0] - pixels[:, 0], pred[:, 1] - pixels[:, 1]),
+                         np.hypot(pred[:, 2] - pixels[:, 2], pred[:, 3] - pixels[:, 3]))
+        return ~(err > o.drift_threshold_px)  # NaN (no reference point): kept
+
+    def _detect(self, image, existing):
+        """New corners (n, 2) in the cells below their share, away from ``existing`` (m, 2)."""
+        cv2 = self._cv2
+        o = self.options
+        h, w = self._shape
+        mask = np.zeros((h, w), np.uint8)
+        bd = o.border_px
+        side = max(bd, int(round(o.side_band_fraction * w)))
+        mask[bd:h - bd, side:w - side] = 255
+        r = int(math.ceil(o.min_distance_px))
+        for x, y in np.round(existing).astype(int):
+            cv2.circle(mask, (int(x), int(y)), r, 0, -1)
+        cell_w, cell_h = w / o.grid_cols, h / o.grid_rows
+        n_cells = o.grid_cols * o.grid_rows
+        quota = int(math.ceil(o.target_features / n_cells))
+
+        def cell_of(p):
+            cx = np.clip((p[:, 0] / cell_w).astype(int), 0, o.grid_cols - 1)
+            cy = np.clip((p[:, 1] / cell_h).astype(int), 0, o.grid_rows - 1)
+            return cy * o.grid_cols + cx
+
+        have = np.bincount(cell_of(existing), minlength=n_cells) if existing.size else np.zeros(n_cells, int)
+        need = np.maximum(quota - have, 0)
+        if need.sum() == 0 or existing.shape[0] >= o.target_features + n_cells:
+            return np.zeros((0, 2))
+        corners = cv2.goodFeaturesToTrack(image, maxCorners=4 * o.target_features, qualityLevel=o.quality_level,
+                                          minDistance=o.min_distance_px, mask=mask, blockSize=o.block_size_px)
+        if corners is None:
+            return np.zeros((0, 2))
+        corners = corners.reshape(-1, 2).astype(np.float64)  # strongest first
+        cells = cell_of(corners)
+        # keep, in each cell, the strongest `need[cell]` corners
+        order = np.argsort(cells, kind="stable")
+        sorted_cells = cells[order]
+        first = np.searchsorted(sorted_cells, sorted_cells, side="left")
+        rank = np.arange(order.size) - first
+        keep = order[rank < need[sorted_cells]]
+        return corners[np.sort(keep)]
+
+    # ------------------------------------------------------------------ the step
+    def process(self, left, right) -> tuple[np.ndarray, np.ndarray]:
+        """Track into the next rectified grey pair (uint8 arrays of one shape).
+
+        Returns ``(ids (n,) int64 strictly increasing, pixels (n, 4) [uL, vL, uR, vR])``.
+        """
+        cv2 = self._cv2
+        o = self.options
+        left = np.ascontiguousarray(left)
+        right = np.ascontiguousarray(right)
+        if left.ndim != 2 or left.shape != right.shape or left.dtype != np.uint8 or right.dtype != np.uint8:
+            raise ValueError("process expects two grey uint8 images of one shape")
+        if self._shape is None:
+            self._shape = left.shape
+        elif left.shape != self._shape:
+            raise ValueError(f"image size changed from {self._shape} to {left.shape}")
+        pyr_l, pyr_r = left, right  # (OpenCV's Python binding takes images, not prebuilt pyramids)
+        st = self.stats
+
+        use_affine = o.affine_radius_px > 0
+        if use_affine:
+            grad_l, grad_r = self._gradients(left), self._gradients(right)
+        m = self._offsets.shape[0]
+        ids = np.zeros(0, np.int64)
+        pixels = np.zeros((0, 4))
+        templates = np.zeros((0, m), np.float32)
+        warps = np.zeros((0, 2, 2, 2))
+        if self._ids.size and self._prev_pyramid is not None:
+            prev = self._pixels
+            guess = self._predict(prev)
+            cur, ok, fb = self._klt(self._prev_pyramid, pyr_l, prev[:, :2], guess, o.klt_levels)
+            ok &= fb <= o.fb_threshold_px
+            st.lost_temporal += int(np.count_nonzero(~ok))
+            inside = self._inside(cur)
+            st.left_image += int(np.count_nonzero(ok & ~inside))
+            ok &= inside
+            prev, cur, tid = prev[ok], cur[ok], self._ids[ok]
+            tpl, A, ref = self._templates[ok], self._A[ok], self._p_in_ref[ok]
+            disparity = prev[:, 0] - prev[:, 2]
+            stereo, sok = self._stereo(pyr_l, pyr_r, cur, disparity, o.klt_levels)
+            st.rejected_stereo_tracked += int(np.count_nonzero(~sok))
+            prev, stereo, tid, tpl, A, ref = prev[sok], stereo[sok], tid[sok], tpl[sok], A[sok], ref[sok]
+            if use_affine:
+                pl, AL, okl = self._affine(grad_l, tpl, stereo[:, :2], A[:, 0])
+                pr, AR, okr = self._affine(grad_r, tpl, stereo[:, 2:], A[:, 1])
+                stereo = np.concatenate([pl, pr], axis=1)
+                A = np.stack([AL, AR], axis=1)
+                aok = okl & okr & self._stereo_ok(stereo)
+                st.rejected_affine += int(np.count_nonzero(~aok))
+                prev, stereo, tid, tpl, A, ref = prev[aok], stereo[aok], tid[aok], tpl[aok], A[aok], ref[aok]
+            geo = self._geometric_inliers(prev, stereo)
+            st.rejected_geometric += int(np.count_nonzero(~geo))
+            ids, pixels, templates, warps, refs = tid[geo], stereo[geo], tpl[geo], A[geo], ref[geo]
+            if self._motion_ok:
+                step = np.eye(4)
+                step[:3, :3], step[:3, 3] = self._motion
+                self._cam_T_ref = step @ self._cam_T_ref
+                dok = self._drift_ok(refs, pixels)
+                st.rejected_drift += int(np.count_nonzero(~dok))
+                ids, pixels, templates, warps, refs = ids[dok], pixels[dok], templates[dok], warps[dok], refs[dok]
+            else:  # the chain is broken: no drift reference for the tracks alive now
+                refs = np.full_like(refs, np.nan)
+        else:
+            refs = np.zeros((0, 3))
+
+        new = self._detect(left, pixels[:, :2])
+        if new.shape[0]:
+            st.detected += new.shape[0]
+            stereo, sok = self._stereo(pyr_l, pyr_r, new, np.zeros(new.shape[0]), o.stereo_levels)
+            st.rejected_stereo_new += int(np.count_nonzero(~sok))
+            stereo = stereo[sok]
+            A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
+            if use_affine:
+                tpl = self._sample(grad_l, stereo[:, :2], A[:, 0])[..., 0].astype(np.float32)
+                pr, AR, okr = self._affine(grad_r, tpl, stereo[:, 2:], A[:, 1])
+                stereo = np.concatenate([stereo[:, :2], pr], axis=1)
+                A[:, 1] = AR
+                aok = okr & self._stereo_ok(stereo) & (tpl.std(axis=1) > 2.0)
+                st.rejected_stereo_new += int(np.count_nonzero(~aok))
+                stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
+            else:
+                tpl = np.zeros((stereo.shape[0], m), np.float32)
+            new_ids = np.arange(self._next_id, self._next_id + stereo.shape[0], dtype=np.int64)
+            self._next_id += stereo.shape[0]
+            ids = np.concatenate([ids, new_ids])
+            pixels = np.concatenate([pixels, stereo])
+            templates = np.concatenate([templates, tpl])
+            warps = np.concatenate([warps, A])
+            ref_T_cam = np.linalg.inv(self._cam_T_ref)
+            refs = np.concatenate([refs, self._triangulate(stereo) @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]])
+        order = np.argsort(ids, kind="stable")
+        ids, pixels = ids[order], pixels[order]
+        self._templates, self._A, self._p_in_ref = templates[order], warps[order], refs[order]
+        self._ids, self._pixels, self._prev_pyramid = ids, pixels, pyr_l
+        st.frames += 1
+        st.tracks_per_frame.append(int(ids.size))
+        return ids.copy(), pixels.copy()
+
+
+def finish_tracks(frames: list[tuple[np.ndarray, np.ndarray]], min_track_length: int):
+    """Per-frame ``(ids, pixels)`` -> :class:`~vislam.core.sequence.StereoObservations`.
+
+    Tracks seen in fewer than ``min_track_length`` frames are dropped; the others are
+    renumbered 0..M-1 in order of their first frame (ids grow with detection, so the
+    order is kept).
+    """
+    from vislam.core.sequence import StereoObservations
+
+    counts = np.array([f[0].size for f in frames], dtype=np.int64)
+    all_ids = np.concatenate([f[0] for f in frames]) if frames else np.zeros(0, np.int64)
+    all_px = np.concatenate([f[1] for f in frames]) if frames else np.zeros((0, 4))
+    n_ids = int(all_ids.max()) + 1 if all_ids.size else 0
+    lengths = np.bincount(all_ids, minlength=n_ids)
+    keep_id = lengths >= max(1, min_track_length)
+    new_id = np.cumsum(keep_id) - 1
+    keep = keep_id[all_ids]
+    frame_of = np.repeat(np.arange(len(frames)), counts)
+    kept_counts = np.bincount(frame_of[keep], minlength=len(frames))
+    offsets = np.zeros(len(frames) + 1, dtype=np.int64)
+    np.cumsum(kept_counts, out=offsets[1:])
+    return StereoObservations(offsets, new_id[all_ids[keep]], all_px[keep], int(keep_id.sum()))

@@ -1,0 +1,339 @@
+"""The visual front end: readers of the three folder layouts, the tracker, `vislam track`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import SHARED_DATA, shared_file
+
+cv2 = pytest.importorskip("cv2")
+
+from vislam.cli import main  # noqa: E402
+from vislam.core.tracking import StereoTracker, TrackerOptions  # noqa: E402
+from vislam.errors import ConfigError, DatasetError  # noqa: E402
+from vislam.tools.frontend_io import open_stereo_source, read_kitti_calibration  # noqa: E402
+
+# --------------------------------------------------------------------------- KITTI calibration
+
+# The published 2011_09_30 calibration (shared data README), in the KITTI files' own format.
+_CAM_TO_CAM = """calib_time: 09-Jan-2012 14:00:15
+corner_dist: 9.950000e-02
+S_rect_00: 1.226000e+03 3.700000e+02
+R_rect_00: 9.999280e-01 8.085985e-03 -8.866797e-03 -8.123205e-03 9.999583e-01 -4.169750e-03 8.832711e-03 4.241477e-03 9.999520e-01
+P_rect_00: 7.070912e+02 0.000000e+00 6.018873e+02 0.000000e+00 0.000000e+00 7.070912e+02 1.831104e+02 0.000000e+00 0.000000e+00 0.000000e+00 1.000000e+00 0.000000e+00
+S_rect_01: 1.226000e+03 3.700000e+02
+P_rect_01: 7.070912e+02 0.000000e+00 6.018873e+02 -3.798145e+02 0.000000e+00 7.070912e+02 1.831104e+02 0.000000e+00 0.000000e+00 0.000000e+00 1.000000e+00 0.000000e+00
+S_rect_02: 1.242000e+03 3.750000e+02
+P_rect_02: 7.070912e+02 0.000000e+00 6.018873e+02 4.688783e+01 0.000000e+00 7.070912e+02 1.831104e+02 1.178601e-01 0.000000e+00 0.000000e+00 1.000000e+00 6.203223e-03
+S_rect_03: 1.242000e+03 3.750000e+02
+P_rect_03: 7.070912e+02 0.000000e+00 6.018873e+02 -3.334597e+02 0.000000e+00 7.070912e+02 1.831104e+02 1.930130e+00 0.000000e+00 0.000000e+00 1.000000e+00 3.318498e-03
+"""
+_VELO_TO_CAM = """calib_time: 15-Mar-2012 11:37:16
+R: 7.027555e-03 -9.999753e-01 2.599616e-05 -2.254837e-03 -4.184312e-05 -9.999975e-01 9.999728e-01 7.027479e-03 -2.255075e-03
+T: -7.137748e-03 -7.482656e-02 -3.336324e-01
+delta_f: 0.000000e+00 0.000000e+00
+delta_c: 0.000000e+00 0.000000e+00
+"""
+_IMU_TO_VELO = """calib_time: 25-May-2012 16:47:16
+R: 9.999976e-01 7.553071e-04 -2.035826e-03 -7.854027e-04 9.998898e-01 -1.482298e-02 2.024406e-03 1.482454e-02 9.998881e-01
+T: -8.086759e-01 3.195559e-01 -7.997231e-01
+"""
+
+
+def _write_kitti_calib(date_dir):
+    date_dir.mkdir(parents=True, exist_ok=True)
+    (date_dir / "calib_cam_to_cam.txt").write_text(_CAM_TO_CAM)
+    (date_dir / "calib_velo_to_cam.txt").write_text(_VELO_TO_CAM)
+    (date_dir / "calib_imu_to_velo.txt").write_text(_IMU_TO_VELO)
+    return date_dir
+
+
+def test_kitti_calibration_matches_the_shared_0027_file(tmp_path):
+    from vislam.tools.dataset_io import load_sequence
+
+    seq = load_sequence(shared_file("sparse/0027.npz"))
+    cal = read_kitti_calibration(_write_kitti_calib(tmp_path / "2011_09_30"))
+    np.testing.assert_allclose(cal["K"], seq.camera.K, atol=1e-6)
+    assert abs(cal["baseline_m"] - seq.camera.baseline_m) < 1e-6
+    np.testing.assert_allclose(cal["cam_T_imu"][:3, :3], seq.cam_T_imu[:3, :3], atol=1e-6)
+    # the published translation (the shared files store -Rᵀ t instead; data README)
+    np.testing.assert_allclose(cal["cam_T_imu"][:3, 3], [-0.316, 0.734, -1.138], atol=2e-3)
+    np.testing.assert_allclose(-cal["cam_T_imu"][:3, :3].T @ cal["cam_T_imu"][:3, 3], seq.cam_T_imu[:3, 3],
+                               atol=2e-3)
+    assert cal["image_size_px"] == (1226, 370)
+
+
+def test_kitti_colour_pair_is_the_grey_calibration_moved_by_p_rect(tmp_path):
+    date = _write_kitti_calib(tmp_path / "2011_09_30")
+    grey = read_kitti_calibration(date, "grey")
+    colour = read_kitti_calibration(date, "colour")
+    np.testing.assert_allclose(colour["cam_T_imu"][:3, :3], grey["cam_T_imu"][:3, :3], atol=1e-12)
+    # a point's coordinates in rectified camera 2 = those in rectified camera 0 + P_rect_02[:, 3] / f
+    offset = colour["cam_T_imu"][:3, 3] - grey["cam_T_imu"][:3, 3]
+    np.testing.assert_allclose(offset, [4.688783e01 / 707.0912, 1.178601e-01 / 707.0912, 6.203223e-03], atol=1e-12)
+    assert abs(colour["baseline_m"] - (4.688783e01 + 3.334597e02) / 707.0912) < 1e-12
+    assert colour["image_size_px"] == (1242, 375)
+
+
+def test_kitti_calibration_errors_name_the_file_and_key(tmp_path):
+    date = _write_kitti_calib(tmp_path / "d")
+    (date / "calib_imu_to_velo.txt").write_text("R: 1 0 0 0 1 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"calib_imu_to_velo.txt: key 'T' missing"):
+        read_kitti_calibration(date)
+    (date / "calib_imu_to_velo.txt").unlink()
+    with pytest.raises(DatasetError, match=r"calib_imu_to_velo.txt: missing"):
+        read_kitti_calibration(date)
+
+
+# --------------------------------------------------------------------------- a plain folder of textured images
+
+
+def _texture(rng, h, w):
+    """A smooth random texture (blobs of many sizes) with strong corners."""
+    img = np.zeros((h, w))
+    for s in (3, 7, 15):
+        small = rng.random((h // s + 2, w // s + 2))
+        img += cv2.resize(small, (w + 2 * s, h + 2 * s), interpolation=cv2.INTER_CUBIC)[s:s + h, s:s + w]
+    img = (img - img.min()) / np.ptp(img)
+    return (40 + 180 * img).astype(np.uint8)
+
+
+def _plain_folder(root, n=6, disparity=8.0, shift=(1.5, 0.5), size=(320, 200), seed=0):
+    """A plain-layout folder: a fronto-parallel textured plane, the right image the left
+    shifted by ``disparity`` px, each frame the previous shifted by ``shift`` px."""
+    rng = np.random.default_rng(seed)
+    w, h = size
+    big = _texture(rng, h + 80, w + 80)
+    (root / "left").mkdir(parents=True)
+    (root / "right").mkdir()
+    for k in range(n):
+        dx, dy = 20 + k * shift[0], 20 + k * shift[1]
+        for side, extra in (("left", 0.0), ("right", disparity)):
+            M = np.array([[1.0, 0, -dx - extra], [0, 1.0, -dy]])  # dst(x) = src(x + dx + extra), inside src
+            img = cv2.warpAffine(big, M, (w, h), flags=cv2.INTER_CUBIC)
+            cv2.imwrite(str(root / side / f"{k:06d}.png"), img)
+    f = 300.0
+    (root / "calibration.yaml").write_text(
+        f"K: [[{f}, 0, {w / 2}], [0, {f}, {h / 2}], [0, 0, 1]]\nbaseline: 0.5\n"
+        "cam_T_imu: [[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]]\n")
+    rows = ["t,vx,vy,vz,wx,wy,wz"] + [f"{100 + 0.1 * k},1,0,0,0,0,0.01" for k in range(n)]
+    (root / "velocities.csv").write_text("\n".join(rows) + "\n")
+    return root
+
+
+def test_tracker_on_shifted_texture_recovers_disparity_and_motion(tmp_path):
+    source = open_stereo_source(_plain_folder(tmp_path / "plain"))
+    assert source.layout == "folder" and source.n_frames == 6
+    tracker = StereoTracker(source.K, source.baseline_m, TrackerOptions(target_features=80, grid_cols=4,
+                                                                        grid_rows=2))
+    frames = [tracker.process(*source.read_pair(t)) for t in range(source.n_frames)]
+    ids0, px0 = frames[0]
+    assert ids0.size >= 40
+    np.testing.assert_allclose(np.median(px0[:, 0] - px0[:, 2]), 8.0, atol=0.05)
+    assert np.median(np.abs(px0[:, 1] - px0[:, 3])) < 0.05
+    ids5, px5 = frames[5]
+    common, i0, i5 = np.intersect1d(ids0, ids5, return_indices=True)
+    assert common.size >= 0.8 * ids0.size  # stable ids
+    moved = px5[i5, :2] - px0[i0, :2]
+    np.testing.assert_allclose(np.median(moved, axis=0), [-7.5, -2.5], atol=0.05)  # 5 frames of -shift
+    assert np.all(np.abs(moved - [-7.5, -2.5]) < 0.1)
+
+
+def test_vislam_track_writes_a_recording_and_statistics(tmp_path, capsys):
+    from vislam.tools.dataset_io import load_sequence
+
+    src = _plain_folder(tmp_path / "plain")
+    out = tmp_path / "o" / "tracks.npz"
+    assert main(["track", str(src), "--out", str(out), "--quiet", "--features", "60"]) == 0
+    seq = load_sequence(out)
+    assert seq.n_frames == 6
+    np.testing.assert_allclose(seq.linear_velocity_in_imu_mps[:, 0], 1.0)
+    np.testing.assert_allclose(seq.timestamps_s, 100 + 0.1 * np.arange(6))
+    assert seq.observations.track_lengths().min() >= 2
+    stats = json.loads((tmp_path / "o" / "tracks.tracking.json").read_text())
+    assert stats["frames"] == 6 and stats["tracks"] == seq.n_landmarks
+    assert stats["tracks_per_frame_output"]["mean"] == pytest.approx(seq.observations.counts_per_frame().mean())
+
+
+def test_tracker_options_from_file_and_errors(tmp_path):
+    from vislam.cli.track import tracker_options_from_args
+
+    cfg = tmp_path / "t.yaml"
+    cfg.write_text("target_features: 123\nfb_threshold_px: 0.8\n")
+    opts = tracker_options_from_args(cfg, {"min_track_length": 4})
+    assert (opts.target_features, opts.fb_threshold_px, opts.min_track_length) == (123, 0.8, 4)
+    cfg.write_text("target_feature: 1\n")
+    with pytest.raises(ConfigError, match="t.yaml: unknown tracker option.*target_feature"):
+        tracker_options_from_args(cfg)
+    with pytest.raises(ConfigError, match="--features must be >= 1"):
+        tracker_options_from_args(None, {"target_features": 0})
+
+
+def _bad_folders(tmp_path):
+    cases = {}
+    empty = tmp_path / "nolayout"
+    (empty / "images").mkdir(parents=True)
+    cases["no layout"] = (empty, "matches no image layout")
+    p = _plain_folder(tmp_path / "nocal")
+    (p / "calibration.yaml").unlink()
+    cases["missing calibration"] = (p, "calibration.yaml: missing")
+    p = _plain_folder(tmp_path / "badcal")
+    (p / "calibration.yaml").write_text("K: [[300, 0, 160], [0, 300, 100]]\nbaseline: 0.5\n")
+    cases["malformed calibration"] = (p, "calibration.yaml: key 'K'")
+    p = _plain_folder(tmp_path / "badimg")
+    (p / "right" / "000003.png").write_bytes(b"not a png")
+    cases["unreadable image"] = (p, "000003.png: cannot be read as an image")
+    p = _plain_folder(tmp_path / "count")
+    (p / "right" / "000005.png").unlink()
+    cases["counts disagree"] = (p, "holds 5 images")
+    p = _plain_folder(tmp_path / "vcount")
+    (p / "velocities.csv").write_text("t,vx,vy,vz,wx,wy,wz\n0,1,0,0,0,0,0\n0.1,1,0,0,0,0,0\n")
+    cases["velocity rows disagree"] = (p, "velocities.csv: has 2 rows; expected one per image pair")
+    # KITTI: left/right time stamps disagree
+    date = _write_kitti_calib(tmp_path / "k" / "2011_09_30")
+    drive = date / "2011_09_30_drive_0001_sync"
+    for cam, offset in (("image_00", 0.0), ("image_01", 0.02)):
+        (drive / cam / "data").mkdir(parents=True)
+        for k in range(3):
+            cv2.imwrite(str(drive / cam / "data" / f"{k:010d}.png"), np.zeros((370, 1226), np.uint8))
+        (drive / cam / "timestamps.txt").write_text(
+            "".join(f"2011-09-30 12:00:0{k}.{int((0.1 + offset) * 1e9):09d}\n" for k in range(3)))
+    cases["timestamps disagree"] = (drive, "image_01/timestamps.txt: time stamp of frame 0 differs")
+    return cases
+
+
+def test_bad_folders_give_one_line_exit_2_and_no_output(tmp_path, capsys):
+    for name, (src, needle) in _bad_folders(tmp_path).items():
+        out = tmp_path / "out" / f"{name.replace(' ', '_')}.npz"
+        capsys.readouterr()
+        code = main(["track", str(src), "--out", str(out), "--quiet"])
+        err = capsys.readouterr().err
+        assert code == 2, (name, err)
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("vislam track: error: "), (name, err)
+        assert needle in lines[0], (name, lines[0])
+        assert not out.exists() and not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir()), name
+
+
+# --------------------------------------------------------------------------- EuRoC real images
+
+EUROC = SHARED_DATA / "images" / "euroc_v1_01_first95"
+
+
+@pytest.fixture(scope="module")
+def euroc_tracks():
+    if not (EUROC / "mav0" / "cam0" / "data.csv").is_file():
+        pytest.skip(f"shared data not available: {EUROC}")
+    from vislam.tools.frontend_io import track_source
+
+    source = open_stereo_source(EUROC)
+    sequence, stats = track_source(source)
+    return source, sequence, stats
+
+
+@pytest.mark.shared
+def test_euroc_rectified_calibration_agrees_with_sensor_yaml(euroc_tracks):
+    from vislam.core.lie import se3_inverse
+
+    source, _, _ = euroc_tracks
+    extra = source.extra
+    t_cam1_in_cam0 = se3_inverse(extra["cam1_T_cam0"])[:3, 3]
+    assert abs(source.baseline_m - np.linalg.norm(t_cam1_in_cam0)) < 1e-9  # 0.110 m
+    # the rectified left camera is the raw cam0 turned by R_rect: undo it and get sensor.yaml's T_BS back
+    R_rect = extra["rect_R_cam0"]
+    cam0_T_imu = np.eye(4)
+    cam0_T_imu[:3, :3] = R_rect.T @ source.cam_T_imu[:3, :3]
+    cam0_T_imu[:3, 3] = R_rect.T @ source.cam_T_imu[:3, 3]
+    np.testing.assert_allclose(se3_inverse(cam0_T_imu), extra["body_T_cam0"], atol=1e-9)
+    # the rectified x axis points along the baseline (the right camera straight to the right)
+    np.testing.assert_allclose(R_rect @ t_cam1_in_cam0, [source.baseline_m, 0, 0], atol=1e-9)
+    assert np.degrees(np.arccos((np.trace(R_rect) - 1) / 2)) < 3  # a small turn
+
+
+@pytest.mark.shared
+def test_euroc_stereo_rows_drift_and_depths(euroc_tracks):
+    source, seq, stats = euroc_tracks
+    obs = seq.observations
+    px = obs.pixels
+    assert seq.n_frames == 95 and obs.counts_per_frame().min() >= 30
+    assert np.median(np.abs(px[:, 1] - px[:, 3])) <= 0.5  # epipolar rows after rectification
+    depth = source.K[0, 0] * source.baseline_m / (px[:, 0] - px[:, 2])
+    assert np.all((depth > 0.5) & (depth < 15.0))  # a room
+    # drift of the static camera's tracks over the 95 frames: the MAV on the floor still moves the image by up
+    # to ~1.5 px in all (motors; every track shifts alike), so the drift is the departure of each track from
+    # the common image motion — a homography from frame 0 fitted to all full-length tracks
+    full = np.flatnonzero(obs.track_lengths() == seq.n_frames)
+    assert full.size >= 30
+    first = obs.frame(0)
+    last = obs.frame(seq.n_frames - 1)
+    p0 = first[1][np.searchsorted(first[0], full), :2]
+    p1 = last[1][np.searchsorted(last[0], full), :2]
+    H, _ = cv2.findHomography(p0, p1, 0)
+    pred = cv2.perspectiveTransform(p0.reshape(-1, 1, 2), H).reshape(-1, 2)
+    assert np.median(np.linalg.norm(p1 - pred, axis=1)) <= 0.3
+
+
+@pytest.mark.shared
+def test_euroc_without_velocities_is_refused_by_the_filters(euroc_tracks, tmp_path, capsys):
+    from vislam.tools.frontend_io import write_tracks
+
+    _, seq, stats = euroc_tracks
+    path = write_tracks(seq, stats, tmp_path / "euroc.npz")[0]
+    code = main(["run", str(path), "--out", str(tmp_path / "run"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "holds no velocities" in err and "--velocities" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "run").exists() or not any((tmp_path / "run").iterdir())
+
+
+def test_run_and_check_on_bad_folders_give_one_line_and_write_nothing(tmp_path, capsys):
+    cases = _bad_folders(tmp_path)
+    for command in ("run", "check", "compare"):
+        for name in ("no layout", "unreadable image", "counts disagree"):
+            src, needle = cases[name]
+            out = tmp_path / f"{command}-{name.replace(' ', '_')}"
+            capsys.readouterr()
+            code = main([command, str(src), "--out", str(out)] + (["--quiet"] if command != "check" else []))
+            err = capsys.readouterr().err.strip().splitlines()
+            assert code == 2 and len(err) == 1 and needle in err[0], (command, name, err)
+            assert err[0].startswith(f"vislam {command}: error: ")
+            assert not out.exists(), (command, name)
+
+
+def test_run_refuses_an_euroc_folder_without_velocities_before_any_work(tmp_path, capsys):
+    if not (EUROC / "mav0").is_dir():
+        pytest.skip(f"shared data not available: {EUROC}")
+    code = main(["run", str(EUROC), "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "no IMU velocities" in err[0] and "--velocities" in err[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_report_takes_an_image_folder(tmp_path, capsys):
+    src = _plain_folder(tmp_path / "plain", n=8)
+    out = tmp_path / "report"
+    code = main(["report", "--data", str(src), "--out", str(out), "--sim-frames", "0", "--no-smoother",
+                 "--noise-levels", "none", "--sequential", "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    text = (out / "report.md").read_text()
+    assert "images/plain" in text
+    assert (out / "tracks" / "plain" / "tracks.npz").is_file()
+
+
+def test_euroc_velocity_csv_is_interpolated_at_the_image_times(tmp_path):
+    if not (EUROC / "mav0").is_dir():
+        pytest.skip(f"shared data not available: {EUROC}")
+    bare = open_stereo_source(EUROC)
+    t = bare.timestamps_s
+    grid = np.linspace(t[0] - 1, t[-1] + 1, 37)
+    rows = ["t,vx,vy,vz,wx,wy,wz"] + [f"{g:.9f},{g - t[0]:.9f},1,2,0,0,{2 * (g - t[0]):.9f}" for g in grid]
+    csv = tmp_path / "v.csv"
+    csv.write_text("\n".join(rows) + "\n")
+    source = open_stereo_source(EUROC, velocities=csv)
+    np.testing.assert_allclose(source.velocities[:, 0], t - t[0], atol=1e-6)
+    np.testing.assert_allclose(source.velocities[:, 5], 2 * (t - t[0]), atol=1e-6)
+    csv.write_text("t,vx,vy,vz,wx,wy,wz\n" + f"{t[0]:.9f},0,0,0,0,0,0\n{t[10]:.9f},0,0,0,0,0,0\n")
+    with pytest.raises(DatasetError, match=r"v.csv: covers .*; expected it to cover the image times"):
+        open_stereo_source(EUROC, velocities=csv)
