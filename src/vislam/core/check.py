@@ -664,7 +664,9 @@ def _imu_camera_translation(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi, g
     _, delta, cov, cost_free = _fit_translation(pairs, rel, C0, phi, plane, scale)
     t_free = t_stored + plane @ delta
     cov_p = cov + opts.translation_floor_m ** 2 * np.eye(2)
-    se3d = np.sqrt(np.clip(np.diag(plane @ cov_p @ plane.T), 0, None))
+    # per camera axis; None for the axis along the yaw axis (not observed)
+    se3d = [None if abs(up_cam[i]) > 0.7 else float(v)
+            for i, v in enumerate(np.sqrt(np.clip(np.diag(plane @ cov_p @ plane.T), 0, None)))]
     # the two recorded conventions, each with its rotation refitted
     _, _, _, cost_stored = _fit_translation(pairs, rel, C0, phi, None, scale)
     _, _, _, cost_swapped = _fit_translation(pairs, rel, _with_translation(C0, t_swapped), phi, None, scale)
@@ -682,7 +684,7 @@ def _imu_camera_translation(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi, g
     # the unobserved component: that of the recorded convention nearer in the plane
     t_axis = t_swapped if d_swapped < d_stored else t_stored
     t_free = t_free + up_cam * (up_cam @ (t_axis - t_free))
-    est.update({"imu_camera_translation_free_m": t_free.tolist(), "imu_camera_translation_free_m_se": se3d.tolist(),
+    est.update({"imu_camera_translation_free_m": t_free.tolist(), "imu_camera_translation_free_m_se": se3d,
                 "imu_camera_translation_unobserved_axis": up_cam.tolist(),
                 "imu_camera_translation_free_from_stored_m": d_stored,
                 "imu_camera_translation_free_from_swapped_m": d_swapped,
@@ -690,16 +692,17 @@ def _imu_camera_translation(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi, g
                 "imu_camera_translation_costs": {"stored": float(np.sum(cost_stored)),
                                                  "swapped": float(np.sum(cost_swapped)),
                                                  "free": float(np.sum(cost_free))}})
-    se_txt = f"± {_fmt_vec(se3d, '.2f')} m, the component along the yaw axis {_fmt_vec(up_cam, '.2f')} unobserved"
+    se_txt = ("± (" + ", ".join("unobserved" if v is None else f"{v:.2f}" for v in se3d) + f") m, the "
+              f"component along the yaw axis {_fmt_vec(up_cam, '.2f')} unobserved")
     if d_stored <= opts.translation_warn_m or not chi_stored > _CHI2_2DOF_99:
         est["imu_camera_translation_m"] = t_stored.tolist()
-        est["imu_camera_translation_m_se"] = se3d.tolist()
+        est["imu_camera_translation_m_se"] = se3d
         return est, Finding("imu-camera-translation", "OK",
                             f"the tracks support the recorded IMU-camera translation {_fmt_vec(t_stored, '.3f')} m "
                             f"(free estimate {_fmt_vec(t_free, '.2f')} {se_txt}); nothing to do"), None
     if z_swap >= 3.0 and d_swapped < d_stored:
         est["imu_camera_translation_m"] = t_swapped.tolist()
-        est["imu_camera_translation_m_se"] = se3d.tolist()
+        est["imu_camera_translation_m_se"] = se3d
         return est, Finding(
             "imu-camera-translation", "ERROR",
             f"cam_T_imu's translation {_fmt_vec(t_stored, '.3f')} m is imu_T_cam's (the camera's position in the IMU "
@@ -709,7 +712,7 @@ def _imu_camera_translation(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi, g
             [list(map(float, row)) for row in _with_translation(C0, t_swapped)]
     t_sug = t_free
     est["imu_camera_translation_m"] = t_sug.tolist()
-    est["imu_camera_translation_m_se"] = se3d.tolist()
+    est["imu_camera_translation_m_se"] = se3d
     return est, Finding(
         "imu-camera-translation", "WARN",
         f"cam_T_imu's translation is off by {d_stored:.2f} m: the tracks support {_fmt_vec(t_sug, '.2f')} {se_txt} "
