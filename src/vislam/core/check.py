@@ -44,6 +44,16 @@ The analyses
   KITTI's, do not roll with the camera: on a drive whose turns go mostly one way the
   roll looks like a rotation about the forward axis). It is reported (WARN) above 2°
   when significant at 99 % in its own covariance (chi-square, 3 dof).
+* **IMU-camera translation** (the lever arm, :func:`_imu_camera_translation`): the same
+  robust fit for cam_T_imu's translation with the rotation, in the plane perpendicular to
+  the vehicle's yaw axis (the translation is seen through rotation, and a ground vehicle
+  turns about that axis only: the component along it is not observed), the velocities
+  averaged over ``translation_smoothing_s`` first when the IMU is noisy. The recorded
+  translation is tested against the swapped one (:func:`swapped_translation`: imu_T_cam's
+  translation stored as cam_T_imu's) by a paired comparison of their costs over
+  landmarks, and against the free estimate: ERROR when the swapped one fits better
+  (z >= 3) and lies nearer the free estimate, WARN when the free estimate is further
+  than ``translation_warn_m`` and significant at 99 %.
 * **Velocity association** (which sample describes the interval k -> k+1: sample k+1,
   "next", or k, "current", or further off) and a **camera-IMU time offset**: the
   candidate with the smallest robust reprojection cost; the time offset is refined on a
