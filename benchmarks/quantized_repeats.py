@@ -21,9 +21,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from vislam.core.bookkeeping import FrameRepeats  # noqa: E402
-from vislam.core.sequence import StereoObservations  # noqa: E402
-from vislam.core.stalls import StallRemapBuffer  # noqa: E402
+from vislam.core.stalls import repeat_decisions, rounded_pixels  # noqa: E402
 from vislam.tools.dataset_io import load_sequence  # noqa: E402
 
 FILES = ["sparse/0020", "sparse/0027", "sparse/0042", "dense/0022", "dense/0027", "dense/0034"]
@@ -37,16 +35,6 @@ def bit_equal(obs) -> np.ndarray:
     return out
 
 
-def decisions(seq):
-    det, online, buf = FrameRepeats(seq.camera), [], StallRemapBuffer(1000, seq.camera)
-    for fr in seq.frames():
-        if fr.index:
-            det.set_motion(fr.dt_s, fr.linear_velocity_mps, fr.angular_velocity_radps)
-        online.append(det(fr.index, fr.landmark_ids, fr.pixels))
-        buf.push(fr)
-    return seq.repeated_mask(), np.concatenate(online), buf.repeats
-
-
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
@@ -56,9 +44,8 @@ def main() -> int:
     for name in FILES:
         seq = load_sequence(Path(args.data) / f"{name}.npz")
         obs = seq.observations
-        q = seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, np.round(obs.pixels),
-                                                        obs.n_landmarks))
-        (mf, of, bf), (mq, oq, bq) = decisions(seq), decisions(q)
+        q = rounded_pixels(seq)
+        (mf, of, bf), (mq, oq, bq) = repeat_decisions(seq), repeat_decisions(q)
         _, evidence = q.observations.repeat_evidence(q.repeat_motion())
         same = bool(np.array_equal(mq, mf) and np.array_equal(oq, mf) and bq == bf and np.array_equal(of, mf))
         ok &= same

@@ -311,23 +311,16 @@ def test_real_data_segments_are_in_sync():
 
 
 def _rounded(seq):
-    obs = seq.observations
-    return seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, np.round(obs.pixels),
-                                                       obs.n_landmarks))
+    from vislam.core.stalls import rounded_pixels
+
+    return rounded_pixels(seq)
 
 
 def _decisions(seq):
     """The repeat decisions of every detector: whole sequence, online (the filters'), stall buffer."""
-    from vislam.core.bookkeeping import FrameRepeats
-    from vislam.core.stalls import StallRemapBuffer
+    from vislam.core.stalls import repeat_decisions
 
-    det, online, buf = FrameRepeats(seq.camera), [], StallRemapBuffer(1000, seq.camera)
-    for fr in seq.frames():
-        if fr.index:
-            det.set_motion(fr.dt_s, fr.linear_velocity_mps, fr.angular_velocity_radps)
-        online.append(det(fr.index, fr.landmark_ids, fr.pixels))
-        buf.push(fr)
-    return seq.repeated_mask(), np.concatenate(online), buf.repeats
+    return repeat_decisions(seq)
 
 
 def _bit_equal(obs):

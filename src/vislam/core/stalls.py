@@ -84,6 +84,8 @@ __all__ = [
     "odometry_flow_ratios",
     "segment_timing_residuals",
     "stall_diagnostics",
+    "rounded_pixels",
+    "repeat_decisions",
 ]
 
 #: Groups of :func:`odometry_flow_ratios`, in report order.
@@ -642,3 +644,26 @@ class StallRemapBuffer:
         else:
             ids, pixels = np.zeros(0, dtype=np.int64), np.zeros((0, 4))
         return replace(frame, landmark_ids=ids, pixels=pixels)
+
+
+def rounded_pixels(sequence: Sequence) -> Sequence:
+    """``sequence`` with its pixels rounded to integers (a quantizing tracker's output)."""
+    obs = sequence.observations
+    return sequence.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids,
+                                                            np.round(obs.pixels), obs.n_landmarks))
+
+
+def repeat_decisions(sequence: Sequence) -> tuple[np.ndarray, np.ndarray, int]:
+    """The repeat decisions of every detector on ``sequence``: the whole-sequence mask
+    (:meth:`Sequence.repeated_mask`), the online one of the filters
+    (:class:`~vislam.core.bookkeeping.FrameRepeats`, frame by frame, per observation)
+    and the number of repeats SLAM's :class:`StallRemapBuffer` drops."""
+    from vislam.core.bookkeeping import FrameRepeats
+
+    detector, online, buffer = FrameRepeats(sequence.camera), [], StallRemapBuffer(1000, sequence.camera)
+    for frame in sequence.frames():
+        if frame.index:
+            detector.set_motion(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
+        online.append(detector(frame.index, frame.landmark_ids, frame.pixels))
+        buffer.push(frame)
+    return sequence.repeated_mask(), np.concatenate(online), buffer.repeats
