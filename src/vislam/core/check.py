@@ -975,7 +975,6 @@ def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
     bias = np.zeros(3)
     time_offset = 0.0
     if pairs.n_pairs >= 30:
-        rel0 = pairs.relative_imu(ts, u, 1)
         r_before = pairs.residuals(pairs.relative_imu(ts, sequence.velocities(), 1), C0)  # the data as recorded
         est["reprojection_before_px"] = _percentiles(_left_distance(r_before))
         # the loss scale follows the residual level, so that most residuals are in the
