@@ -165,3 +165,12 @@ def test_run_help_shows_the_common_flags_first_and_groups_the_rest(capsys):
     for title in ("noise model", "gating and rejection", "update", "IMU-error state", "smoother"):
         assert f"filter options: {title}:" in text
     assert "[pixel_noise_px = noise.pixel_px]" in " ".join(text.split())  # the option each flag sets
+
+
+def test_the_docs_page_holds_the_generated_reference():
+    from conftest import REPO_ROOT
+    from vislam.core.options import reference_markdown
+
+    text = (REPO_ROOT / "docs" / "options.md").read_text(encoding="utf-8")
+    block = text.split("<!-- options-reference:begin -->\n", 1)[1].split("<!-- options-reference:end -->", 1)[0]
+    assert block == reference_markdown(), "regenerate docs/options.md's reference with reference_markdown()"

@@ -216,7 +216,7 @@ class LandmarkOptions(_Group):
                                 range=NON_NEGATIVE)
     min_depth_m: float = option(0.5, "smallest triangulated depth accepted for a new landmark", unit="m",
                                 range=NON_NEGATIVE)
-    max_row_difference_px: float = option(3.0, "largest |vL − vR| accepted (rectified rows should agree)",
+    max_row_difference_px: float = option(3.0, "largest row difference vL − vR, absolute (rectified rows should agree)",
                                           unit="px", range=NON_NEGATIVE)
     init_frames: int = option(1, "frames a SLAM landmark must pass the guards and a static-point test before it "
                               "enters the state (1: at first sight, the report)", unit="frames", kind="integer",
@@ -693,3 +693,32 @@ def _rigid(name: str, value):
 
 #: The groups with their defaults (validated once).
 _DEFAULT_GROUPS = {group: cls() for group, cls in OPTION_GROUPS.items()}
+
+
+def _default_text(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_default_text(v) for v in value) + "]"
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def reference_markdown() -> str:
+    """The options' reference tables (Markdown, one per group) from the fields' metadata:
+    the block between the markers of docs/options.md (tests/test_options_groups.py
+    checks that the page holds exactly this)."""
+    lines = []
+    for group, cls in OPTION_GROUPS.items():
+        lines += [f"### `{group}`: {cls.TITLE}", "", " ".join(cls.__doc__.split()), "",
+                  "| flat name | in the group | unit | default | what it does |", "|---|---|---|---|---|"]
+        for f in fields(cls):
+            m = f.metadata
+            what = m["doc"].replace("|", "\\|")
+            if m["kind"] == "choice":
+                what += f" ({' / '.join(m['choices'])})"
+            lines.append(f"| `{m['flat'] or f.name}` | `{f.name}` | {m['unit'] or '–'} | `{_default_text(f.default)}` "
+                         f"| {what} |")
+        lines.append("")
+    return "\n".join(lines).rstrip() + "\n"
