@@ -93,13 +93,14 @@ def test_nested_and_flat_files_give_equal_options(tmp_path):
 
 
 @pytest.mark.parametrize("text, words", [
-    ("noise:\n  velocty_mps: 0.5\n", ["'velocty_mps'", "in 'noise'", "did you mean 'velocity_mps'"]),
+    ("noise:\n  velocty_mps: 0.5\n", ["group 'noise'", "'velocty_mps'", "did you mean 'velocity_mps'"]),
     ("nosie:\n  velocity_mps: 0.5\n", ["'nosie'", "did you mean 'noise'"]),
     ("noise: 0.5\n", ["'noise'", "group", "mapping"]),
     ("velocity_noise_mps: 0.5\nnoise:\n  velocity_mps: 0.6\n", ["noise.velocity_mps", "twice"]),
     ("gating:\n  probability: 1.5\n", ["gating_probability", "(0, 1)"]),
     ("smoother:\n  kernel: fancy\n", ["smoother_kernel", "fancy"]),
     ("filter:\n  velocity_noise_mps: 0.5\n", ["'filter'", "table"]),
+    ("window_s: 1.0\n", ["'window_s'", "'smoother_window_s'", "group 'smoother'"]),
 ])
 def test_nested_key_errors_are_one_line_with_did_you_mean(tmp_path, text, words):
     path = tmp_path / "bad.yaml"

@@ -439,7 +439,7 @@ def flatten_options(values: Mapping[str, Any], source: str = "options") -> dict[
             known = _group_fields(key)
             unknown = [k for k in value if k not in known]
             if unknown:
-                raise ConfigError(f"{source}: {unknown_names_message(f'option(s) in {key!r}', unknown, known)}")
+                raise ConfigError(f"{source}: group {key!r}: {unknown_names_message('option(s)', unknown, known)}")
             for name, v in value.items():
                 f = known[name]
                 flat = f.metadata["flat"] or f.name
@@ -601,7 +601,7 @@ class FilterOptions:
         values = flatten_options(values, source)
         unknown = sorted((k for k in values if k not in FLAT_FIELDS), key=repr)
         if unknown:
-            raise ConfigError(f"{source}: {unknown_names_message('option(s)', unknown, [*FLAT_FIELDS, *OPTION_GROUPS])}")
+            raise ConfigError(f"{source}: {_unknown_message(unknown)}")
         clean = {}
         for key, value in values.items():
             kind = _FIELD_OF[key].metadata["kind"]
@@ -620,11 +620,22 @@ class FilterOptions:
         return dataclasses.replace(self, **changes)
 
 
+def _unknown_message(unknown: list) -> str:
+    """"unknown option(s) ..." with "did you mean"; a field's name in its group given at
+    the top level is pointed to its flat name and group."""
+    for key in unknown:
+        places = [(flat, g) for flat, (g, n) in FLAT_FIELDS.items() if n == key and flat != key]
+        if len(unknown) == 1 and places:
+            where = " or ".join(f"{flat!r} (or {key!r} in group {g!r})" for flat, g in places)
+            return f"unknown option {key!r}; at the top level it is {where}"
+    return unknown_names_message("option(s)", unknown, [*FLAT_FIELDS, *OPTION_GROUPS])
+
+
 def _build_group(group: str, values: Mapping[str, Any]):
     known = _group_fields(group)
     unknown = [k for k in values if k not in known]
     if unknown:
-        raise ConfigError(unknown_names_message(f"option(s) in {group!r}", unknown, known))
+        raise ConfigError(f"group {group!r}: {unknown_names_message('option(s)', unknown, known)}")
     return OPTION_GROUPS[group](**values)
 
 
