@@ -74,8 +74,8 @@ def test_nested_and_flat_files_give_equal_options(tmp_path):
     nested_toml.write_text('[noise]\nvelocity_mps = 0.5\nangular_radps = 0.05\n[gating]\nprobability = "none"\n'
                            '[smoother]\nwindow_s = 1\n[refinement]\nenabled = true\nkernel = "cauchy"\n')
     mixed_toml = tmp_path / "mixed.toml"
-    mixed_toml.write_text('velocity_noise_mps = 0.5\ngating_probability = false\nrefine = true\n'
-                          '[noise]\nangular_radps = 0.05\n[smoother]\nwindow_s = 1.0\n[refinement]\nkernel = "cauchy"\n')
+    mixed_toml.write_text('velocity_noise_mps = 0.5\ngating_probability = false\nrefine = true\n[noise]\n'
+                          'angular_radps = 0.05\n[smoother]\nwindow_s = 1.0\n[refinement]\nkernel = "cauchy"\n')
     options = [resolve_options(p) for p in (flat_yaml, nested_yaml, nested_toml, mixed_toml)]
     assert all(o == options[0] for o in options)
     assert options[0].velocity_noise_mps == 0.5 and options[0].gating_probability is None

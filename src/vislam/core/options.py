@@ -183,7 +183,10 @@ class _Group:
         """Checks across the group's fields (none by default)."""
 
 
-POSITIVE, NON_NEGATIVE, PROBABILITY = (0, None), (0, None), (0, 1)
+#: Common ranges of option() (``**POSITIVE``): > 0, >= 0, and in (0, 1).
+POSITIVE = {"range": (0, None), "open": (True, False)}
+NON_NEGATIVE = {"range": (0, None)}
+PROBABILITY = {"range": (0, 1), "open": (True, True)}
 
 
 @dataclass(frozen=True)
@@ -197,12 +200,12 @@ class NoiseOptions(_Group):
     angular_radps: float | tuple[float, float, float] = option(
         0.0003, "1σ error of one angular-velocity sample per axis; one number or three (IMU x, y, z)",
         unit="rad/s", kind="per_axis", flat="angular_noise_radps")
-    pixel_px: float = option(2.0, "1σ error of one pixel coordinate of a stereo observation (V = σ² I₄)", unit="px",
-                             range=POSITIVE, open=(True, False), flat="pixel_noise_px",
+    pixel_px: float = option(2.0, "1σ error of one pixel coordinate of a stereo observation (V = σ² I₄)",
+                             unit="px", **POSITIVE, flat="pixel_noise_px",
                              note="the update needs a positive-definite V")
     initial_position_std_m: float = option(0.0, "1σ of the initial position (the world frame is the first IMU "
-                                           "pose, so 0 is exact)", unit="m", range=NON_NEGATIVE)
-    initial_rotation_std_rad: float = option(0.0, "1σ of the initial orientation", unit="rad", range=NON_NEGATIVE)
+                                           "pose, so 0 is exact)", unit="m", **NON_NEGATIVE)
+    initial_rotation_std_rad: float = option(0.0, "1σ of the initial orientation", unit="rad", **NON_NEGATIVE)
 
 
 @dataclass(frozen=True)
@@ -211,13 +214,13 @@ class LandmarkOptions(_Group):
 
     TITLE: ClassVar[str] = "landmarks and initialization"
     min_disparity_px: float = option(2.0, "smallest disparity uL − uR accepted for triangulation", unit="px",
-                                     range=NON_NEGATIVE)
+                                     **NON_NEGATIVE)
     max_depth_m: float = option(200.0, "largest triangulated depth accepted for a new landmark", unit="m",
-                                range=NON_NEGATIVE)
+                                **NON_NEGATIVE)
     min_depth_m: float = option(0.5, "smallest triangulated depth accepted for a new landmark", unit="m",
-                                range=NON_NEGATIVE)
-    max_row_difference_px: float = option(3.0, "largest row difference vL − vR, absolute (rectified rows should agree)",
-                                          unit="px", range=NON_NEGATIVE)
+                                **NON_NEGATIVE)
+    max_row_difference_px: float = option(3.0, "largest row difference vL − vR, absolute (rectified rows "
+                                          "should agree)", unit="px", **NON_NEGATIVE)
     init_frames: int = option(1, "frames a SLAM landmark must pass the guards and a static-point test before it "
                               "enters the state (1: at first sight, the report)", unit="frames", kind="integer",
                               range=(1, None))
@@ -234,9 +237,9 @@ class LandmarkOptions(_Group):
                           "report's proposed fix for moving landmarks; Cartesian)", kind="bool",
                           flat="landmark_motion")
     velocity_std_mps: float = option(2.0, "prior 1σ of a new landmark's velocity per axis (motion model only)",
-                                     unit="m/s", range=NON_NEGATIVE, flat="landmark_velocity_std_mps")
+                                     unit="m/s", **NON_NEGATIVE, flat="landmark_velocity_std_mps")
     acceleration_std_mps2: float = option(1.0, "1σ of a landmark's acceleration per axis, process noise (motion "
-                                          "model only)", unit="m/s²", range=NON_NEGATIVE,
+                                          "model only)", unit="m/s²", **NON_NEGATIVE,
                                           flat="landmark_acceleration_std_mps2")
 
     def _check(self) -> None:
@@ -250,14 +253,13 @@ class GatingOptions(_Group):
 
     TITLE: ClassVar[str] = "gating and rejection"
     probability: float | None = option(0.95, "chi-square gate probability of the 4-D stereo innovation; "
-                                       "observations outside are not used (null: no gate)", range=PROBABILITY,
-                                       open=(True, True), optional=True, flat="gating_probability")
+                                       "observations outside are not used (null: no gate)", **PROBABILITY,
+                                       optional=True, flat="gating_probability")
     max_consecutive_gated: int = option(3, "a landmark gated this many frames in a row is removed and flagged "
                                         "rejected (0: never)", unit="frames", kind="integer", range=(0, None))
     drift_test_probability: float | None = option(0.99, "innovation drift test: a landmark whose whitened "
                                                   "residuals keep drifting beyond this chi-square(4) quantile is "
-                                                  "rejected as moving (null: off)", range=PROBABILITY,
-                                                  open=(True, True), optional=True)
+                                                  "rejected as moving (null: off)", **PROBABILITY, optional=True)
 
 
 @dataclass(frozen=True)
@@ -271,7 +273,7 @@ class UpdateOptions(_Group):
                              "EKF, not with landmark motion)", kind="integer", range=(1, None),
                              flat="update_iterations")
     iteration_tolerance: float = option(0.5, "stop iterating when the next step would move the estimate by less "
-                                        "than this (0: always update_iterations)", unit="σ", range=NON_NEGATIVE,
+                                        "than this (0: always update_iterations)", unit="σ", **NON_NEGATIVE,
                                         flat="update_iteration_tolerance")
 
 
@@ -304,7 +306,7 @@ class ImuErrorOptions(_Group):
         0.0, "stationary 1σ of the slowly varying error of the angular-velocity samples; one number or three",
         unit="rad/s", kind="per_axis", flat="imu_bias_sigma_radps")
     time_constant_s: float = option(5.0, "correlation time T_c of the IMU-error state (a = exp(−τ/T_c) per step)",
-                                    unit="s", range=POSITIVE, open=(True, False), flat="imu_bias_time_constant_s")
+                                    unit="s", **POSITIVE, flat="imu_bias_time_constant_s")
 
 
 @dataclass(frozen=True)
@@ -333,9 +335,9 @@ class DataCorrections(_Group):
         (0.0, 0.0, 0.0), "velocity bias subtracted from every linear-velocity sample (IMU x, y, z)", unit="m/s",
         kind="vector3")
     velocity_scale: float = option(1.0, "factor on every linear-velocity sample, before the bias (a recording in "
-                                   "km/h needs 1/3.6)", range=POSITIVE, open=(True, False))
+                                   "km/h needs 1/3.6)", **POSITIVE)
     timestamp_scale: float = option(1.0, "factor that turns the recording's timestamps into seconds (0.001 for "
-                                    "milliseconds)", range=POSITIVE, open=(True, False))
+                                    "milliseconds)", **POSITIVE)
     imu_camera_rotation_correction_deg: tuple[float, float, float] = option(
         (0.0, 0.0, 0.0), "rotation vector φ in the camera frame: cam_T_imu's rotation becomes exp(φ) R, its "
         "translation is kept", unit="deg", kind="vector3")
@@ -354,29 +356,29 @@ class SmootherOptions(_Group):
 
     TITLE: ClassVar[str] = "smoother"
     window_s: float = option(3.0, "length of the fixed-lag window: older poses and landmarks not seen for this "
-                             "long are marginalized", unit="s", range=POSITIVE, open=(True, False),
+                             "long are marginalized", unit="s", **POSITIVE,
                              flat="smoother_window_s")
     pixel_noise_px: float | None = option(1.0, "1σ of one pixel coordinate in the smoother's stereo factors "
-                                          "(null: pixel_noise_px)", unit="px", range=POSITIVE, open=(True, False),
+                                          "(null: pixel_noise_px)", unit="px", **POSITIVE,
                                           optional=True, flat="smoother_pixel_noise_px")
     kernel: str = option("cauchy", "robust kernel of the stereo factors", kind="choice", choices=KERNELS,
                          flat="smoother_kernel")
     kernel_scale: float = option(2.0, "scale of the kernel in units of the whitened error", unit="σ",
-                                 range=POSITIVE, open=(True, False), flat="smoother_kernel_scale")
+                                 **POSITIVE, flat="smoother_kernel_scale")
     relinearize_threshold: float = option(0.01, "iSAM2 relinearization threshold (norm of a variable's tangent "
-                                          "update)", range=NON_NEGATIVE, flat="smoother_relinearize_threshold")
+                                          "update)", **NON_NEGATIVE, flat="smoother_relinearize_threshold")
     landmark_prior_m: float = option(30.0, "1σ of the weak position prior on each new landmark, around its "
-                                     "triangulation", unit="m", range=POSITIVE, open=(True, False),
+                                     "triangulation", unit="m", **POSITIVE,
                                      flat="smoother_landmark_prior_m")
     outlier_sigma: float = option(4.0, "an observation whose whitened error exceeds this after its frame's update "
-                                  "is removed, counted as gated (0: no check)", unit="σ", range=NON_NEGATIVE,
+                                  "is removed, counted as gated (0: no check)", unit="σ", **NON_NEGATIVE,
                                   flat="smoother_outlier_sigma")
     drift_ratio: float | None = option(8.0, "drift test: a landmark whose residual trend exceeds this many times "
                                        "the frame's median (and moves faster than drift_min_speed) is rejected "
                                        "(null: off)", range=(1, None), open=(True, False), optional=True,
                                        flat="smoother_drift_ratio")
     drift_min_speed_mps: float = option(2.0, "apparent speed below which the drift test does not take a trend for "
-                                        "motion", unit="m/s", range=NON_NEGATIVE,
+                                        "motion", unit="m/s", **NON_NEGATIVE,
                                         flat="smoother_drift_min_speed_mps")
     pose_covariance: bool = option(False, "compute the newest pose's marginal covariance every frame (costs as "
                                    "much as the update; otherwise pose_covariance is None)", kind="bool",
@@ -393,9 +395,9 @@ class RefineOptions(_Group):
     kernel: str = option("huber", "robust kernel of the refinement's stereo factors", kind="choice",
                          choices=KERNELS, flat="refine_kernel")
     kernel_scale: float = option(1.0, "scale of the kernel in units of the whitened error", unit="σ",
-                                 range=POSITIVE, open=(True, False), flat="refine_kernel_scale")
+                                 **POSITIVE, flat="refine_kernel_scale")
     outlier_px: float = option(6.0, "second pass without the stereo factors whose reprojection error after the "
-                               "first exceeds this", unit="px", range=POSITIVE, open=(True, False),
+                               "first exceeds this", unit="px", **POSITIVE,
                                flat="refine_outlier_px")
     max_iterations: int = option(100, "iteration limit of each Levenberg-Marquardt pass", kind="integer",
                                  range=(1, None), flat="refine_max_iterations")
@@ -729,7 +731,7 @@ def reference_markdown() -> str:
             what = m["doc"].replace("|", "\\|")
             if m["kind"] == "choice":
                 what += f" ({' / '.join(m['choices'])})"
-            lines.append(f"| `{m['flat'] or f.name}` | `{f.name}` | {m['unit'] or '–'} | `{_default_text(f.default)}` "
-                         f"| {what} |")
+            default = _default_text(f.default)
+            lines.append(f"| `{m['flat'] or f.name}` | `{f.name}` | {m['unit'] or '–'} | `{default}` | {what} |")
         lines.append("")
     return "\n".join(lines).rstrip() + "\n"
