@@ -175,3 +175,17 @@ def test_the_docs_page_holds_the_generated_reference():
     text = (REPO_ROOT / "docs" / "options.md").read_text(encoding="utf-8")
     block = text.split("<!-- options-reference:begin -->\n", 1)[1].split("<!-- options-reference:end -->", 1)[0]
     assert block == reference_markdown(), "regenerate docs/options.md's reference with reference_markdown()"
+
+
+def test_sweep_specs_take_nested_option_sets(tmp_path):
+    from vislam.tools.sweep import parse_spec
+
+    (tmp_path / "nested.yaml").write_text("noise:\n  velocity_mps: 0.5\ngating:\n  probability: off\n")
+    spec = parse_spec({"datasets": ["a.npz"], "options": {
+        "inline": {"noise": {"velocity_mps": 0.5}, "gating_probability": "none"}, "file": "nested.yaml",
+        "flat": {"velocity_noise_mps": 0.5, "gating_probability": None}}}, source="spec.yaml", base_dir=tmp_path)
+    assert spec.options["inline"] == spec.options["file"] == spec.options["flat"] \
+        == {"velocity_noise_mps": 0.5, "gating_probability": None}
+    with pytest.raises(ConfigError, match="did you mean 'velocity_mps'"):
+        parse_spec({"datasets": ["a.npz"], "options": {"bad": {"noise": {"velocity": 0.5}}}}, source="spec.yaml",
+                   base_dir=tmp_path)

@@ -137,7 +137,8 @@ def _note_option_names(parser) -> None:
     for action in parser._actions:
         if action.dest in fields_of and action.help:
             names = ", ".join(f"{f} = {'.'.join(FLAT_FIELDS[f])}" for f in fields_of[action.dest])
-            action.help = f"{action.help} [{names}]"
+            if f"[{names}]" not in action.help:  # once, however often it is called
+                action.help = f"{action.help} [{names}]"
 
 
 def load_data(args, cache_dir):
@@ -250,6 +251,7 @@ def add_filter_arguments(parser, common=None) -> None:
                            "off)")
     imu_error.add_argument("--imu-bias-time-constant", type=float, metavar="S",
                            help="correlation time of the IMU-error state, s (default 5)")
+    _note_option_names(parser)
 
 
 def add_noise_injection_arguments(parser) -> None:
