@@ -16,11 +16,13 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from vislam.core.options import FilterOptions
+from vislam.core.options import FLAT_FIELDS, OPTION_GROUPS, FilterOptions
 from vislam.errors import ConfigError
 from vislam.tools.config import resolve_options
 
-FIELDS = [f for f in FilterOptions.__dataclass_fields__]
+FIELDS = list(FLAT_FIELDS)  # the flat names (FilterOptions' own dataclass fields are its groups)
+#: (group, field name in the group) of every option, for nested documents.
+NESTED = sorted(FLAT_FIELDS.values())
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 scalars = st.one_of(
@@ -91,6 +93,24 @@ def test_valid_keys_random_toml_values(tmp_path, doc):
     _resolve(path)
 
 
+@SETTINGS
+@given(items=st.lists(st.tuples(st.sampled_from(NESTED), values), max_size=5),
+       extra=st.dictionaries(st.sampled_from(list(OPTION_GROUPS)), values, max_size=1))
+def test_nested_documents_random_values(tmp_path, items, extra):
+    """Groups of options with random values (and now and then a group given a random
+    non-mapping value): FilterOptions or a one-line ConfigError, as flat documents."""
+    doc: dict = {}
+    for (group, name), value in items:
+        doc.setdefault(group, {})[name] = value
+    for group, value in extra.items():
+        doc.setdefault(group, value)
+    path = tmp_path / "options.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    opts = _resolve(path)
+    if opts is not None:
+        assert FilterOptions.from_dict(opts.to_nested_dict()) == opts == FilterOptions.from_dict(opts.to_dict())
+
+
 @pytest.mark.parametrize("text", [
     "velocity_noise_mps: .nan\n",
     "pixel_noise_px: 1e400\n",
@@ -99,6 +119,9 @@ def test_valid_keys_random_toml_values(tmp_path, doc):
     "max_consecutive_gated: 2.5\n",
     "- a list\n",
     "velocity_noise_mps: {nested: 1}\n",
+    "noise: {velocity_mps: .nan}\n",
+    "noise: 1\n",
+    "noise: {velocity_mps: 0.5}\nvelocity_noise_mps: 0.5\n",
     "velocity_noise_mps: 0.5\nvelocity_noise_mps: 0.6\n",
 ])
 def test_known_bad_yaml(tmp_path, text):

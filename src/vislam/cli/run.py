@@ -77,7 +77,7 @@ def _probability_or_off(text: str):
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "run",
+        "run", add_help=False,
         help="run IMU localization, landmark mapping, SLAM or the sliding-window smoother on a dataset",
         description="Run one of the report's estimators on a dataset (.npz) and write DIR/trajectory.tum, "
         "DIR/trajectory.kitti, DIR/trajectory.png, DIR/summary.json and, for mapping and SLAM, "
@@ -85,28 +85,60 @@ def register(subparsers) -> None:
         "DIR/error_over_distance.png). Outputs appear all together or not at all. Options: "
         "defaults < --config FILE < --robust < the other flags. The --add-* flags add noise to the data (seeded); "
         "the filter's own noise model is set by --velocity-noise etc.",
+        epilog="Every filter option (docs/options.md) can be set in the --config file, by its flat name "
+        "(velocity_noise_mps: 0.5) or by group (noise: {velocity_mps: 0.5}); the flags above override the file.",
     )
+    # what most runs need first; the rest below, grouped by component
+    common = parser.add_argument_group("common options")
+    common.add_argument("-h", "--help", action="help", help="show this help message and exit")
     parser.add_argument("data", metavar="DATA", help="dataset file (.npz), or an image folder (KITTI raw drive, "
                         "EuRoC, plain; tracked first, the tracks cached as DIR/tracks.npz)")
-    parser.add_argument("--mode", choices=MODES, default="slam",
+    common.add_argument("--mode", choices=MODES, default="slam",
                         help="localization (IMU only), mapping (landmarks from known poses), slam (the report's EKF) "
                         "or smoother (fixed-lag smoother on GTSAM over the same measurements) (default: slam)")
-    parser.add_argument("--refine", action="store_true", default=None,
-                        help="smoother only: a batch Levenberg-Marquardt pass over the whole drive from the smoother's "
-                        "result (the trajectory written is the refined one; the smoother's goes to smoother.tum)")
-    parser.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")
-    add_filter_arguments(parser)
+    common.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")
+    add_filter_arguments(parser, common)
+    smoother = _component_group(parser, "smoother")
+    smoother.add_argument("--refine", action="store_true", default=None,
+                          help="smoother only: a batch Levenberg-Marquardt pass over the whole drive from the "
+                          "smoother's result (the trajectory written is the refined one; the smoother's goes to "
+                          "smoother.tum)")
+    mapping = parser.add_argument_group("mapping")
+    mapping.add_argument("--poses", metavar="FILE",
+                         help="mapping only: known world_T_imu poses, TUM or KITTI, one per frame (default: the "
+                         "localization trajectory)")
+    add_ground_truth_arguments(parser, common)
+    common.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_noise_injection_arguments(parser)
-    add_ground_truth_arguments(parser)
-    parser.add_argument("--poses", metavar="FILE",
-                        help="mapping only: known world_T_imu poses, TUM or KITTI, one per frame (default: the "
-                        "localization trajectory)")
     add_rerun_arguments(parser)
     from vislam.cli.track import add_source_arguments
 
     add_source_arguments(parser)
-    parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    _note_option_names(parser)
     parser.set_defaults(func=run)
+
+
+def _component_group(parser, component: str):
+    """A new argument group for the flags of one component of FilterOptions (a key of
+    :data:`~vislam.core.options.OPTION_GROUPS`), titled like the options' docs."""
+    from vislam.core.options import OPTION_GROUPS
+
+    return parser.add_argument_group(f"filter options: {OPTION_GROUPS[component].TITLE}",
+                                     f"options file: {component}.* (FilterOptions.{component})")
+
+
+def _note_option_names(parser) -> None:
+    """Each filter flag's help ends with the option it sets, flat and nested
+    (``[pixel_noise_px = noise.pixel_px]``): the same names as in an options file."""
+    from vislam.core.options import FLAT_FIELDS
+
+    fields_of = {dest: (field,) for dest, (field, _) in FLAG_FIELDS.items()}
+    fields_of["imu_bias_sigma"] = ("imu_bias_sigma_mps", "imu_bias_sigma_radps")
+    for action in parser._actions:
+        if action.dest in fields_of and action.help:
+            names = ", ".join(f"{f} = {'.'.join(FLAT_FIELDS[f])}" for f in fields_of[action.dest])
+            if f"[{names}]" not in action.help:  # once, however often it is called
+                action.help = f"{action.help} [{names}]"
 
 
 def load_data(args, cache_dir):
@@ -178,38 +210,49 @@ def open_rerun_recorder(args, sequence):
                          recording_name=f"{sequence.name} ({args.mode})")
 
 
-def add_filter_arguments(parser) -> None:
-    """``--config``, ``--robust`` and the filter's own options (shared by run and compare)."""
-    parser.add_argument("--config", metavar="FILE",
-                        help="filter options file (.yaml/.yml/.toml): a mapping of FilterOptions field names")
-    noise = parser.add_argument_group("filter options", "The filter's own noise model and options (they override "
-                                      "--config); not the noise of the data.")
-    noise.add_argument("--velocity-noise", type=float, metavar="MPS",
-                       help="1-sigma error of one linear-velocity sample per axis, m/s (default 0.02; the dense "
-                       "datasets need about 0.5)")
-    noise.add_argument("--angular-noise", type=float, metavar="RADPS",
-                       help="1-sigma error of one angular-velocity sample per axis, rad/s (default 0.0003; the "
-                       "dense datasets need about 0.05)")
+def add_filter_arguments(parser, common=None) -> None:
+    """``--config``, ``--auto``, ``--robust`` and the filter's own options (shared by run
+    and compare). The most used (--config, --velocity-noise, --angular-noise, --auto) go
+    to ``common`` (default: the parser itself), the others to one argument group per
+    component of FilterOptions (noise model, gating and rejection, ...)."""
+    common = parser if common is None else common
+    common.add_argument("--config", metavar="FILE",
+                        help="filter options file (.yaml/.yml/.toml): a mapping of FilterOptions names (flat, or "
+                        "nested by group) to values")
+    common.add_argument("--velocity-noise", type=float, metavar="MPS",
+                        help="the filter's 1-sigma error of one linear-velocity sample per axis, m/s (default 0.02; "
+                        "the dense datasets need about 0.5)")
+    common.add_argument("--angular-noise", type=float, metavar="RADPS",
+                        help="the filter's 1-sigma error of one angular-velocity sample per axis, rad/s (default "
+                        "0.0003; the dense datasets need about 0.05)")
+    common.add_argument("--auto", action="store_true",
+                        help="run `vislam check` on the data first and use its suggestions (noise per axis, gyro "
+                        "bias, IMU-camera rotation, velocity association, time offset) as the base of the options, "
+                        "below --config and the flags; recorded in summary.json under \"auto\"")
+    noise = _component_group(parser, "noise")
     noise.add_argument("--pixel-noise", type=float, metavar="PX",
                        help="1-sigma error of one pixel coordinate of a stereo observation (default 2.0)")
-    noise.add_argument("--gate", type=_probability_or_off, metavar="PROB",
-                       help="chi-square gate probability of the stereo innovation, or 'off' (default 0.95)")
-    noise.add_argument("--ekf", choices=EKF_VARIANTS,
-                       help="oc: observability-constrained EKF (default); standard: the report's equations")
-    noise.add_argument("--imu-bias-sigma", type=_bias_sigmas, metavar="MPS,RADPS",
-                       help="SLAM: estimate a slowly varying error of the velocity samples (IMU-error state, a "
-                       "Gauss-Markov process) with these stationary 1-sigma values, m/s and rad/s (default 0,0: off)")
-    noise.add_argument("--imu-bias-time-constant", type=float, metavar="S",
-                       help="correlation time of the IMU-error state, s (default 5)")
-    noise.add_argument("--keep-all-landmarks", action="store_true", default=None,
-                       help="keep every landmark in the SLAM state (the report's variant; slower)")
-    noise.add_argument("--auto", action="store_true",
-                       help="run `vislam check` on the data first and use its suggestions (noise per axis, gyro "
-                       "bias, IMU-camera rotation, velocity association, time offset) as the base of the options, "
-                       "below --config and the flags; recorded in summary.json under \"auto\"")
-    noise.add_argument("--robust", action="store_true",
-                       help="preset for scenes with moving traffic: "
-                       + ", ".join(f"{k}={v}" for k, v in ROBUST_PRESET.items()))
+    gating = _component_group(parser, "gating")
+    gating.add_argument("--gate", type=_probability_or_off, metavar="PROB",
+                        help="chi-square gate probability of the stereo innovation, or 'off' (default 0.95)")
+    gating.add_argument("--robust", action="store_true",
+                        help="preset for scenes with moving traffic: "
+                        + ", ".join(f"{k}={v}" for k, v in ROBUST_PRESET.items()))
+    update = _component_group(parser, "update")
+    update.add_argument("--ekf", choices=EKF_VARIANTS,
+                        help="oc: observability-constrained EKF (default); standard: the report's equations")
+    landmarks = _component_group(parser, "landmarks")
+    landmarks.add_argument("--keep-all-landmarks", action="store_true", default=None,
+                           help="keep every landmark in the SLAM state (the report's variant; slower)")
+    imu_error = _component_group(parser, "imu_error")
+    imu_error.add_argument("--imu-bias-sigma", type=_bias_sigmas, metavar="MPS,RADPS",
+                           help="SLAM: estimate a slowly varying error of the velocity samples (IMU-error state, a "
+                           "Gauss-Markov process) with these stationary 1-sigma values, m/s and rad/s (default 0,0: "
+                           "off)")
+    imu_error.add_argument("--imu-bias-time-constant", type=float, metavar="S",
+                           help="correlation time of the IMU-error state, s (default 5)")
+    _note_option_names(parser)
+
 
 def add_noise_injection_arguments(parser) -> None:
     """The ``--add-*`` flags: noise injected into the data after loading (shared by run and compare)."""
@@ -232,12 +275,15 @@ def add_noise_injection_arguments(parser) -> None:
     group.add_argument("--noise-seed", type=int, metavar="N", help="seed of the injected noise (default 0)")
 
 
-def add_ground_truth_arguments(parser) -> None:
-    """``--gt``, ``--gt-format``, ``--gt-frame``: evaluate in the same run (shared by run and compare)."""
+def add_ground_truth_arguments(parser, common=None) -> None:
+    """``--gt``, ``--gt-format``, ``--gt-frame``: evaluate in the same run (shared by run and
+    compare); ``--gt`` goes to ``common`` when given (run's first group)."""
     group = parser.add_argument_group(
         "evaluation against ground truth", "Evaluate in the same run: writes metrics.json and "
         "error_over_distance.png next to the other outputs and the metrics into summary.json under \"evaluation\".")
-    group.add_argument("--gt", metavar="FILE", help="ground-truth trajectory file")
+    (group if common is None else common).add_argument(
+        "--gt", metavar="FILE", help="ground-truth trajectory file: evaluate in the same run (metrics.json, "
+        "error_over_distance.png)")
     group.add_argument("--gt-format", choices=GT_FORMATS, default="kitti",
                        help="kitti: line i = frame i; tum: timestamped, matched by time (default: kitti)")
     group.add_argument("--gt-frame", choices=GT_FRAME_CHOICES, default="auto",

@@ -1,36 +1,62 @@
-"""Typed options of the filter, with documented defaults and units.
+"""Typed options of the filter, by component, with documented units and defaults.
 
-:class:`FilterOptions` holds every noise and initialization parameter of the three
-estimators. It can be built from a mapping (e.g. a parsed YAML/TOML file, see
-:mod:`vislam.tools.config`) with :meth:`FilterOptions.from_dict`, which refuses unknown
-keys and invalid values with a :class:`vislam.errors.ConfigError`.
+:class:`FilterOptions` is made of frozen groups, one per component of the estimators:
 
-Noise model (the report's):
+========================  =====================================  ==============================
+attribute                 group                                  component
+========================  =====================================  ==============================
+``options.noise``         :class:`NoiseOptions`                  noise model W, V, initial pose
+``options.landmarks``     :class:`LandmarkOptions`               landmark guards, initialization, chart
+``options.gating``        :class:`GatingOptions`                 gate and rejection of observations
+``options.update``        :class:`UpdateOptions`                 EKF variant and iterated update
+``options.stalls``        :class:`StallOptions`                  repeated observations, stalled tracks
+``options.imu_error``     :class:`ImuErrorOptions`               IMU-error (Gauss-Markov) state
+``options.motion``        :class:`MotionOptions`                 frame of the velocity samples
+``options.corrections``   :class:`DataCorrections`               corrections applied to the data
+``options.smoother``      :class:`SmootherOptions`               the sliding-window smoother
+``options.refinement``    :class:`RefineOptions`                 the smoother's batch refinement
+========================  =====================================  ==============================
 
-* motion noise ``W = diag(σ_v², σ_v², σ_v², σ_ω², σ_ω², σ_ω²)`` enters the prediction as
-  ``τ² W``: σ_v and σ_ω are the 1σ errors of one velocity *sample*, per axis, so the
-  pose error added per step is τ·σ (m and rad);
-* observation noise ``V = σ_px² I₄`` on each stereo observation ``[uL, vL, uR, vR]``.
+Each field carries its one-line doc, unit, type, range or choices and its *flat name* in
+``dataclasses.field(metadata=...)``; one generic validator (:func:`check_value`) reads
+them. Every option also has a flat name, the spelling of options files, flags and code
+before the groups (``velocity_noise_mps`` is ``noise.velocity_mps``):
 
-The defaults suit a clean, GPS-aided IMU like the sparse KITTI datasets'. For the dense
-datasets, whose velocities carry added white noise of about 0.5 m/s and 0.05 rad/s per
-axis and sample, pass ``velocity_noise_mps=0.5, angular_noise_radps=0.05``.
+* ``FilterOptions(velocity_noise_mps=0.5)`` and ``options.replace(...)`` /
+  ``dataclasses.replace(options, ...)`` take flat names (and whole groups);
+* ``options.velocity_noise_mps`` reads the field through a read-only property;
+* :meth:`FilterOptions.from_dict` takes flat keys, nested groups
+  (``{"noise": {"velocity_mps": 0.5}}``) or both, and refuses unknown keys (with
+  "did you mean") and invalid values with a :class:`vislam.errors.ConfigError`;
+* :meth:`FilterOptions.to_dict` is flat (the shape of summary.json, suggested.yaml and
+  sweep results), :meth:`FilterOptions.to_nested_dict` by group.
+
+Noise model (the report's): motion noise ``W = diag(σ_v², σ_v², σ_v², σ_ω², σ_ω², σ_ω²)``
+enters the prediction as ``τ² W`` (σ_v, σ_ω: 1σ error of one velocity sample per axis);
+observation noise ``V = σ_px² I₄`` on each stereo observation ``[uL, vL, uR, vR]``. The
+defaults suit a clean, GPS-aided IMU like the sparse KITTI files'; the dense files need
+``velocity_noise_mps=0.5, angular_noise_radps=0.05``. What each option does and how its
+default was chosen: docs/options.md.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, fields
-from typing import Any, Mapping
+import operator
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from vislam.core.suggest import unknown_names_message
+from vislam.core.suggest import did_you_mean, unknown_names_message
 from vislam.errors import ConfigError
 
 __all__ = ["FilterOptions", "MODES", "REPEATED_POLICIES", "STALL_POLICIES", "EKF_VARIANTS", "ROBUST_PRESET",
-           "VELOCITY_ASSOCIATIONS", "DATA_CORRECTION_FIELDS", "KERNELS", "LANDMARK_PARAMETRIZATIONS"]
+           "VELOCITY_ASSOCIATIONS", "DATA_CORRECTION_FIELDS", "KERNELS", "LANDMARK_PARAMETRIZATIONS",
+           "NoiseOptions", "LandmarkOptions", "GatingOptions", "UpdateOptions", "StallOptions", "ImuErrorOptions",
+           "MotionOptions", "DataCorrections", "SmootherOptions", "RefineOptions", "OPTION_GROUPS", "FLAT_FIELDS",
+           "check_value", "flatten_options", "nest_options"]
 
 #: The three estimators of the report, and the sliding-window smoother (vislam.core.smoother).
 MODES = ("localization", "mapping", "slam", "smoother")
@@ -59,6 +85,389 @@ PER_AXIS_FIELDS = ("velocity_noise_mps", "angular_noise_radps", "imu_bias_sigma_
 #: Options that are exactly three numbers.
 VECTOR_FIELDS = ("gyro_bias_radps", "velocity_bias_mps", "imu_camera_rotation_correction_deg")
 
+#: Options of the robust preset (``--robust``): for scenes with moving traffic — a
+#: more sensitive drift test and two frames of probation for new landmarks.
+ROBUST_PRESET = {"drift_test_probability": 0.9, "probation_frames": 2}
+
+#: Kinds of option values (metadata ``kind``) and what the validator accepts for each.
+KINDS = {
+    "number": "a finite number (an integer is taken as a float)",
+    "integer": "an integer",
+    "bool": "true or false",
+    "choice": "one of the names in metadata 'choices'",
+    "per_axis": "a number, or three numbers (IMU x, y, z)",
+    "vector3": "three numbers (x, y, z)",
+    "rigid": "a 4x4 rigid transform (4 rows of 4 numbers), or null",
+}
+
+
+def option(default, doc: str, *, unit: str = "", kind: str = "number", range: tuple | None = None,
+           open: tuple[bool, bool] = (False, False), choices: tuple | None = None, optional: bool = False,
+           flat: str | None = None, note: str = ""):
+    """A dataclass field of an option group with its metadata: ``doc`` (one line),
+    ``unit``, ``kind`` (:data:`KINDS`), ``range`` (low, high; None for unbounded) with
+    ``open`` (whether each bound is excluded), ``choices``, ``optional`` (None allowed:
+    the test is off), ``flat`` (the flat name; default the field's own) and ``note``
+    (appended to a range error)."""
+    assert kind in KINDS, kind
+    meta = {"doc": doc, "unit": unit, "kind": kind, "range": range, "open": open, "choices": choices,
+            "optional": optional, "flat": flat, "note": note}
+    return field(default=default, metadata=meta)
+
+
+def _range_text(meta) -> str:
+    low, high = meta["range"]
+    low_open, high_open = meta["open"]
+    if low is not None and high is not None:
+        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    if low is not None:
+        return f"{'>' if low_open else '>='} {low:g}"
+    return f"{'<' if high_open else '<='} {high:g}"
+
+
+def _in_range(value: float, meta) -> bool:
+    low, high = meta["range"]
+    low_open, high_open = meta["open"]
+    if low is not None and (value < low or (low_open and value == low)):
+        return False
+    return not (high is not None and (value > high or (high_open and value == high)))
+
+
+def check_value(name: str, value, meta: Mapping[str, Any]):
+    """``value`` checked against an option's metadata and normalized (three numbers as a
+    tuple, a rigid transform as a tuple of rows); ConfigError naming ``name`` otherwise."""
+    kind, optional = meta["kind"], meta["optional"]
+    if value is None and (optional or kind == "rigid"):
+        return None
+    null = " or null" if optional else ""
+    if kind == "choice":
+        if not isinstance(value, str) or value not in meta["choices"]:
+            raise ConfigError(f"{name} must be one of {', '.join(meta['choices'])}, got {value!r}")
+        return value
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise ConfigError(f"{name} must be true or false, got {value!r}")
+        return value
+    if kind == "integer":
+        if isinstance(value, bool) or not isinstance(value, int) or not _in_range(value, meta):
+            raise ConfigError(f"{name} must be an integer {_range_text(meta)}, got {value!r}")
+        return value
+    if kind == "per_axis":
+        return _per_axis(name, value)
+    if kind == "vector3":
+        return _three_numbers(name, value)
+    if kind == "rigid":
+        return _rigid(name, value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"{name} must be a finite number{null}, got {value!r}")
+    if meta["range"] is not None and not _in_range(value, meta):
+        if meta["note"]:
+            raise ConfigError(f"{name} must be {_range_text(meta)} ({meta['note']}), got {value!r}")
+        raise ConfigError(f"{name} must be {_range_text(meta)}{null}, got {value!r}")
+    return value
+
+
+class _Group:
+    """Base of the option groups: the generic validation in ``__post_init__``."""
+
+    #: What the group is about (the title of its --help section and docs table).
+    TITLE: ClassVar[str] = ""
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = check_value(f.metadata["flat"] or f.name, getattr(self, f.name), f.metadata)
+            object.__setattr__(self, f.name, value)
+        self._check()
+
+    def _check(self) -> None:
+        """Checks across the group's fields (none by default)."""
+
+
+#: Common ranges of option() (``**POSITIVE``): > 0, >= 0, and in (0, 1).
+POSITIVE = {"range": (0, None), "open": (True, False)}
+NON_NEGATIVE = {"range": (0, None)}
+PROBABILITY = {"range": (0, 1), "open": (True, True)}
+
+
+@dataclass(frozen=True)
+class NoiseOptions(_Group):
+    """The filter's noise model: motion noise W, observation noise V, initial pose."""
+
+    TITLE: ClassVar[str] = "noise model"
+    velocity_mps: float | tuple[float, float, float] = option(
+        0.02, "1σ error of one linear-velocity sample per axis; one number or three (IMU x, y, z)", unit="m/s",
+        kind="per_axis", flat="velocity_noise_mps")
+    angular_radps: float | tuple[float, float, float] = option(
+        0.0003, "1σ error of one angular-velocity sample per axis; one number or three (IMU x, y, z)",
+        unit="rad/s", kind="per_axis", flat="angular_noise_radps")
+    pixel_px: float = option(2.0, "1σ error of one pixel coordinate of a stereo observation (V = σ² I₄)",
+                             unit="px", **POSITIVE, flat="pixel_noise_px",
+                             note="the update needs a positive-definite V")
+    initial_position_std_m: float = option(0.0, "1σ of the initial position (the world frame is the first IMU "
+                                           "pose, so 0 is exact)", unit="m", **NON_NEGATIVE)
+    initial_rotation_std_rad: float = option(0.0, "1σ of the initial orientation", unit="rad", **NON_NEGATIVE)
+
+
+@dataclass(frozen=True)
+class LandmarkOptions(_Group):
+    """Which stereo points become landmarks, when, and how the state holds them."""
+
+    TITLE: ClassVar[str] = "landmarks and initialization"
+    min_disparity_px: float = option(2.0, "smallest disparity uL − uR accepted for triangulation", unit="px",
+                                     **NON_NEGATIVE)
+    max_depth_m: float = option(200.0, "largest triangulated depth accepted for a new landmark", unit="m",
+                                **NON_NEGATIVE)
+    min_depth_m: float = option(0.5, "smallest triangulated depth accepted for a new landmark", unit="m",
+                                **NON_NEGATIVE)
+    max_row_difference_px: float = option(3.0, "largest row difference vL − vR, absolute (rectified rows "
+                                          "should agree)", unit="px", **NON_NEGATIVE)
+    init_frames: int = option(1, "frames a SLAM landmark must pass the guards and a static-point test before it "
+                              "enters the state (1: at first sight, the report)", unit="frames", kind="integer",
+                              range=(1, None))
+    probation_frames: int = option(0, "frames a new SLAM landmark updates only itself (Schmidt-Kalman consider "
+                                   "update) before it updates the pose (0: off, the report)", unit="frames",
+                                   kind="integer", range=(0, None))
+    parametrization: str = option("inverse_depth", "chart of the SLAM landmarks in the state: anchored inverse "
+                                  "depth or the report's Cartesian world position", kind="choice",
+                                  choices=LANDMARK_PARAMETRIZATIONS, flat="landmark_parametrization")
+    keep_all: bool = option(False, "keep every landmark in the SLAM state for the whole run (the report's "
+                            "variant; by default a landmark is marginalized when its track ends)", kind="bool",
+                            flat="keep_all_landmarks")
+    motion: bool = option(False, "give every SLAM landmark a velocity with a constant-velocity prediction (the "
+                          "report's proposed fix for moving landmarks; Cartesian)", kind="bool",
+                          flat="landmark_motion")
+    velocity_std_mps: float = option(2.0, "prior 1σ of a new landmark's velocity per axis (motion model only)",
+                                     unit="m/s", **NON_NEGATIVE, flat="landmark_velocity_std_mps")
+    acceleration_std_mps2: float = option(1.0, "1σ of a landmark's acceleration per axis, process noise (motion "
+                                          "model only)", unit="m/s²", **NON_NEGATIVE,
+                                          flat="landmark_acceleration_std_mps2")
+
+    def _check(self) -> None:
+        if self.min_depth_m >= self.max_depth_m:
+            raise ConfigError("min_depth_m must be smaller than max_depth_m")
+
+
+@dataclass(frozen=True)
+class GatingOptions(_Group):
+    """Which observations are used, and when a landmark is taken for a moving point."""
+
+    TITLE: ClassVar[str] = "gating and rejection"
+    probability: float | None = option(0.95, "chi-square gate probability of the 4-D stereo innovation; "
+                                       "observations outside are not used (null: no gate)", **PROBABILITY,
+                                       optional=True, flat="gating_probability")
+    max_consecutive_gated: int = option(3, "a landmark gated this many frames in a row is removed and flagged "
+                                        "rejected (0: never)", unit="frames", kind="integer", range=(0, None))
+    drift_test_probability: float | None = option(0.99, "innovation drift test: a landmark whose whitened "
+                                                  "residuals keep drifting beyond this chi-square(4) quantile is "
+                                                  "rejected as moving (null: off)", **PROBABILITY, optional=True)
+
+
+@dataclass(frozen=True)
+class UpdateOptions(_Group):
+    """The EKF's measurement update."""
+
+    TITLE: ClassVar[str] = "update"
+    ekf: str = option("oc", "oc: observability-constrained EKF (Jacobians projected so the global pose stays "
+                      "unobservable); standard: the report's equations", kind="choice", choices=EKF_VARIANTS)
+    iterations: int = option(4, "most iterations of the SLAM update per frame (1: the EKF; more: the iterated "
+                             "EKF, not with landmark motion)", kind="integer", range=(1, None),
+                             flat="update_iterations")
+    iteration_tolerance: float = option(0.5, "stop iterating when the next step would move the estimate by less "
+                                        "than this (0: always update_iterations)", unit="σ", **NON_NEGATIVE,
+                                        flat="update_iteration_tolerance")
+
+
+@dataclass(frozen=True)
+class StallOptions(_Group):
+    """Observations that repeat the previous frame's pixels, and the tracks they stall."""
+
+    TITLE: ClassVar[str] = "stalled tracks"
+    repeated_observations: str = option("skip", "an observation repeating its landmark's previous pixels bit for "
+                                        "bit: skip it, split the track there, or use it", kind="choice",
+                                        choices=REPEATED_POLICIES)
+    policy: str = option("remap", "remap: give each observation of a stalled track to the frame it was taken "
+                         "(SLAM, with repeated_observations skip; runs stall_max_delay_frames behind); keep: "
+                         "use it at the frame it arrives", kind="choice", choices=STALL_POLICIES,
+                         flat="stalled_tracks")
+    max_delay_frames: int = option(10, "largest lag the remap restores (larger lags are dropped); also the "
+                                   "remapped filter's output delay", unit="frames", kind="integer", range=(0, None),
+                                   flat="stall_max_delay_frames")
+
+
+@dataclass(frozen=True)
+class ImuErrorOptions(_Group):
+    """The optional IMU-error state of SLAM: a Gauss-Markov error b of the velocity samples."""
+
+    TITLE: ClassVar[str] = "IMU-error state"
+    sigma_mps: float | tuple[float, float, float] = option(
+        0.0, "stationary 1σ of the slowly varying error of the linear-velocity samples; one number or three "
+        "(0 with sigma_radps 0: off)", unit="m/s", kind="per_axis", flat="imu_bias_sigma_mps")
+    sigma_radps: float | tuple[float, float, float] = option(
+        0.0, "stationary 1σ of the slowly varying error of the angular-velocity samples; one number or three",
+        unit="rad/s", kind="per_axis", flat="imu_bias_sigma_radps")
+    time_constant_s: float = option(5.0, "correlation time T_c of the IMU-error state (a = exp(−τ/T_c) per step)",
+                                    unit="s", **POSITIVE, flat="imu_bias_time_constant_s")
+
+
+@dataclass(frozen=True)
+class MotionOptions(_Group):
+    """How the velocity samples drive the prediction."""
+
+    TITLE: ClassVar[str] = "motion model"
+    velocity_frame: str = option("level", "frame of the linear velocities: body (the IMU frame, the report) or "
+                                 "level (heading-aligned and levelled, an INS's vf/vl/vu as in KITTI)", kind="choice",
+                                 choices=VELOCITY_FRAMES)
+    level_jacobian: bool = option(True, "with velocity_frame level: propagate the covariance with the exact "
+                                  "transition, which includes the roll and pitch dependence of the body velocity",
+                                  kind="bool", flat="level_velocity_jacobian")
+
+
+@dataclass(frozen=True)
+class DataCorrections(_Group):
+    """Corrections applied to the recording before filtering (vislam.core.corrections);
+    ``vislam check`` estimates them, the defaults leave the data untouched."""
+
+    TITLE: ClassVar[str] = "data corrections"
+    gyro_bias_radps: tuple[float, float, float] = option(
+        (0.0, 0.0, 0.0), "gyro bias subtracted from every angular-velocity sample (IMU x, y, z)", unit="rad/s",
+        kind="vector3")
+    velocity_bias_mps: tuple[float, float, float] = option(
+        (0.0, 0.0, 0.0), "velocity bias subtracted from every linear-velocity sample (IMU x, y, z)", unit="m/s",
+        kind="vector3")
+    velocity_scale: float = option(1.0, "factor on every linear-velocity sample, before the bias (a recording in "
+                                   "km/h needs 1/3.6)", **POSITIVE)
+    timestamp_scale: float = option(1.0, "factor that turns the recording's timestamps into seconds (0.001 for "
+                                    "milliseconds)", **POSITIVE)
+    imu_camera_rotation_correction_deg: tuple[float, float, float] = option(
+        (0.0, 0.0, 0.0), "rotation vector φ in the camera frame: cam_T_imu's rotation becomes exp(φ) R, its "
+        "translation is kept", unit="deg", kind="vector3")
+    cam_T_imu: tuple | None = option(None, "4x4 rigid transform (rows) replacing the recording's cam_T_imu, or "
+                                     "null to keep it (the rotation correction applies on top)", kind="rigid")
+    velocity_association: str = option("next", "which velocity sample describes the interval k -> k+1: next "
+                                        "(sample k+1, KITTI) or current (sample k)", kind="choice",
+                                        choices=VELOCITY_ASSOCIATIONS)
+    time_offset_s: float = option(0.0, "camera-IMU time offset: the sample stamped t describes the motion at "
+                                  "t + offset (the velocities are resampled at the frame times)", unit="s")
+
+
+@dataclass(frozen=True)
+class SmootherOptions(_Group):
+    """The sliding-window smoother (mode "smoother", vislam.core.smoother)."""
+
+    TITLE: ClassVar[str] = "smoother"
+    window_s: float = option(3.0, "length of the fixed-lag window: older poses and landmarks not seen for this "
+                             "long are marginalized", unit="s", **POSITIVE,
+                             flat="smoother_window_s")
+    pixel_noise_px: float | None = option(1.0, "1σ of one pixel coordinate in the smoother's stereo factors "
+                                          "(null: pixel_noise_px)", unit="px", **POSITIVE,
+                                          optional=True, flat="smoother_pixel_noise_px")
+    kernel: str = option("cauchy", "robust kernel of the stereo factors", kind="choice", choices=KERNELS,
+                         flat="smoother_kernel")
+    kernel_scale: float = option(2.0, "scale of the kernel in units of the whitened error", unit="σ",
+                                 **POSITIVE, flat="smoother_kernel_scale")
+    relinearize_threshold: float = option(0.01, "iSAM2 relinearization threshold (norm of a variable's tangent "
+                                          "update)", **NON_NEGATIVE, flat="smoother_relinearize_threshold")
+    landmark_prior_m: float = option(30.0, "1σ of the weak position prior on each new landmark, around its "
+                                     "triangulation", unit="m", **POSITIVE,
+                                     flat="smoother_landmark_prior_m")
+    outlier_sigma: float = option(4.0, "an observation whose whitened error exceeds this after its frame's update "
+                                  "is removed, counted as gated (0: no check)", unit="σ", **NON_NEGATIVE,
+                                  flat="smoother_outlier_sigma")
+    drift_ratio: float | None = option(8.0, "drift test: a landmark whose residual trend exceeds this many times "
+                                       "the frame's median (and moves faster than drift_min_speed) is rejected "
+                                       "(null: off)", range=(1, None), open=(True, False), optional=True,
+                                       flat="smoother_drift_ratio")
+    drift_min_speed_mps: float = option(2.0, "apparent speed below which the drift test does not take a trend for "
+                                        "motion", unit="m/s", **NON_NEGATIVE,
+                                        flat="smoother_drift_min_speed_mps")
+    pose_covariance: bool = option(False, "compute the newest pose's marginal covariance every frame (costs as "
+                                   "much as the update; otherwise pose_covariance is None)", kind="bool",
+                                   flat="smoother_pose_covariance")
+
+
+@dataclass(frozen=True)
+class RefineOptions(_Group):
+    """The batch Levenberg-Marquardt refinement after the smoother (``vislam run --refine``)."""
+
+    TITLE: ClassVar[str] = "batch refinement"
+    enabled: bool = option(False, "after the smoother, a batch pass over the whole drive from its final estimate",
+                           kind="bool", flat="refine")
+    kernel: str = option("huber", "robust kernel of the refinement's stereo factors", kind="choice",
+                         choices=KERNELS, flat="refine_kernel")
+    kernel_scale: float = option(1.0, "scale of the kernel in units of the whitened error", unit="σ",
+                                 **POSITIVE, flat="refine_kernel_scale")
+    outlier_px: float = option(6.0, "second pass without the stereo factors whose reprojection error after the "
+                               "first exceeds this", unit="px", **POSITIVE,
+                               flat="refine_outlier_px")
+    max_iterations: int = option(100, "iteration limit of each Levenberg-Marquardt pass", kind="integer",
+                                 range=(1, None), flat="refine_max_iterations")
+
+
+#: Attribute of FilterOptions -> its group class, in the order of the documentation.
+OPTION_GROUPS: dict[str, type] = {
+    "noise": NoiseOptions, "landmarks": LandmarkOptions, "gating": GatingOptions, "update": UpdateOptions,
+    "stalls": StallOptions, "imu_error": ImuErrorOptions, "motion": MotionOptions,
+    "corrections": DataCorrections, "smoother": SmootherOptions, "refinement": RefineOptions,
+}
+
+#: Flat name -> (group, field name in the group), in the order of the groups.
+FLAT_FIELDS: dict[str, tuple[str, str]] = {
+    (f.metadata["flat"] or f.name): (group, f.name) for group, cls in OPTION_GROUPS.items() for f in fields(cls)
+}
+#: (group, field) -> the field (with its metadata), keyed by flat name.
+_FIELD_OF = {flat: {f.name: f for f in fields(OPTION_GROUPS[g])}[n] for flat, (g, n) in FLAT_FIELDS.items()}
+assert len(FLAT_FIELDS) == sum(len(fields(c)) for c in OPTION_GROUPS.values()), "a flat name is used twice"
+assert not set(FLAT_FIELDS) & set(OPTION_GROUPS), "a flat name is a group's name"
+
+
+def _group_fields(group: str) -> dict[str, dataclasses.Field]:
+    return {f.name: f for f in fields(OPTION_GROUPS[group])}
+
+
+def flatten_options(values: Mapping[str, Any], source: str = "options") -> dict[str, Any]:
+    """A mapping of options with nested groups (``{"noise": {"velocity_mps": 0.5}}``,
+    a ``[noise]`` TOML table) turned flat (``{"velocity_noise_mps": 0.5}``); flat keys
+    pass as they are. A group key whose value is not a mapping, an unknown key inside a
+    group (with "did you mean"), an unknown table, or an option given twice (flat and
+    nested) is a ConfigError naming ``source``. Other unknown flat keys are left to
+    :meth:`FilterOptions.from_dict`."""
+    out: dict[str, Any] = {}
+    nested_from: dict[str, str] = {}
+    for key, value in values.items():
+        if key in OPTION_GROUPS:
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"{source}: {key!r} is a group of options and needs a mapping (table) of its "
+                                  f"fields, got {type(value).__name__}")
+            known = _group_fields(key)
+            unknown = [k for k in value if k not in known]
+            if unknown:
+                raise ConfigError(f"{source}: group {key!r}: {unknown_names_message('option(s)', unknown, known)}")
+            for name, v in value.items():
+                f = known[name]
+                flat = f.metadata["flat"] or f.name
+                if flat in values:
+                    raise ConfigError(f"{source}: option {key}.{name} is given twice (also as {flat!r})")
+                out[flat] = v
+                nested_from[flat] = f"{key}.{name}"
+        elif isinstance(value, Mapping):
+            hint = did_you_mean(key, OPTION_GROUPS) if isinstance(key, str) else ""
+            groups = ", ".join(OPTION_GROUPS)
+            raise ConfigError(f"{source}: option {key!r} is a table/mapping but not a group of options "
+                              f"({hint or 'groups: ' + groups}); a file is a mapping of option names to values, "
+                              f"or of groups to their options")
+        else:
+            out[key] = value
+    return out
+
+
+def nest_options(flat: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """A flat mapping of option names (all known) as nested groups, in group order."""
+    out: dict[str, dict[str, Any]] = {}
+    for key, value in flat.items():
+        group, name = FLAT_FIELDS[key]
+        out.setdefault(group, {})[name] = value
+    return {g: out[g] for g in OPTION_GROUPS if g in out}
+
 
 def _chi2_4_quantile(p: float | None) -> float:
     if p is None:
@@ -68,385 +477,63 @@ def _chi2_4_quantile(p: float | None) -> float:
     return float(chdtri(4, 1.0 - p))
 
 
-#: Options of the robust preset (``--robust``): for scenes with moving traffic — a
-#: more sensitive drift test and two frames of probation for new landmarks.
-ROBUST_PRESET = {"drift_test_probability": 0.9, "probation_frames": 2}
-
-
 def _axis_array(value) -> np.ndarray:
     """A PER_AXIS_FIELDS value (a number or three) as a (3,) array (a copy)."""
     return np.broadcast_to(np.asarray(value, dtype=np.float64), (3,)).copy()
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class FilterOptions:
-    """Noise, initialization and robustness parameters (units in each name)."""
+    """Noise, initialization and robustness parameters of the estimators, by component.
 
-    #: 1σ error of one linear-velocity sample, per axis (m/s). Motion noise W, linear part.
-    #: One number for all three axes, or three numbers (IMU x, y, z). Default: a GPS-aided inertial system like KITTI's OXTS RT3003 (velocity accuracy
-    #: 0.05 km/h ≈ 0.014 m/s RMS).
-    velocity_noise_mps: float | tuple[float, float, float] = 0.02
-    #: 1σ error of one angular-velocity sample, per axis (rad/s). Motion noise W, angular
-    #: part; one number or three (IMU x, y, z). Default: the RT3003 gyro's angle random walk 0.2°/√h is 1.8e-4 rad/s per
-    #: 10 Hz sample; rounded up.
-    angular_noise_radps: float | tuple[float, float, float] = 0.0003
-    #: 1σ error of one pixel coordinate of a stereo observation (px). V = σ² I₄. The
-    #: KITTI features scatter by ~1.5 px around their ground-truth projections; the
-    #: default adds margin for the linearization of distant landmarks.
-    pixel_noise_px: float = 2.0
-    #: 1σ of the initial position (m). The world frame is the first IMU pose, so 0 is exact.
-    initial_position_std_m: float = 0.0
-    #: 1σ of the initial orientation (rad).
-    initial_rotation_std_rad: float = 0.0
+    Build it with flat names (``FilterOptions(velocity_noise_mps=0.5)``), with groups
+    (``FilterOptions(noise=NoiseOptions(velocity_mps=0.5))``) or both (flat names apply on
+    top of the groups). Every flat name reads as an attribute (``options.pixel_noise_px``
+    is ``options.noise.pixel_px``). Fields, units and defaults: the group classes and
+    docs/options.md.
+    """
 
-    # --- landmark initialization (guards) -------------------------------------------
-    #: Smallest disparity uL − uR (px) accepted for triangulation.
-    min_disparity_px: float = 2.0
-    #: Largest triangulated depth (m) accepted for a new landmark. A limit on the *noisy*
-    #: depth lets a point from beyond it in only when the noise brings it closer (a depth
-    #: bias the filter does not model); it also refuses far, low-disparity outliers.
-    #: Measured (Cartesian OC-EKF, levelled velocities, SLAM with 0.5 / 0.05 noise; ATE /
-    #: KITTI t) on dense 0027 as shared, with 5 % injected gross outliers (seeds 1, 2) and
-    #: on four fresh noise draws (sparse 0027's velocities + white noise of the dense
-    #: files' level, dense 0027's features): mean over the seven runs 60 m 4.72 m /
-    #: 2.75 %, 100 m 3.62 m / 2.92 %, 200 m 3.59 m / 2.82 % (clean as shared: 4.82 / 2.75,
-    #: 2.72 / 2.56, 2.79 / 2.44; worst run 5.75, 5.22, 5.45 m). Sparse 0020 / 0027 the same
-    #: for all; simulator pose NEES 24 -> 14 from 60 to 200 m (8 x 150 frames). The 2 px
-    #: disparity guard stops at about 190 m on KITTI, so 200 m leaves depth to it.
-    #: Rerun: ``PYTHONPATH=src python benchmarks/noise_draws.py --depths 60,100,200``.
-    max_depth_m: float = 200.0
-    #: Smallest triangulated depth (m) accepted for a new landmark.
-    min_depth_m: float = 0.5
-    #: Largest |vL − vR| (px) accepted (rectified images should agree on the row).
-    max_row_difference_px: float = 3.0
-    #: A SLAM landmark enters the state once it has passed the guards in this many
-    #: consecutive frames and its first and latest observations agree with a static
-    #: point (chi-square gate, accounting for triangulation, pixel and IMU noise); the
-    #: latest observation initializes it. 1 initializes at first sight (the report).
-    #: Points on moving vehicles and mismatched tracks fail the check: after two failures
-    #: the landmark is rejected.
-    init_frames: int = 1
-    #: A new SLAM landmark's first updates refine only the landmark itself, treating the
-    #: pose as known with its uncertainty (Schmidt-Kalman "consider" update), for this
-    #: many frames; after that it updates pose and landmarks jointly. Points on moving
-    #: vehicles drift away from their static prediction during this probation and are
-    #: gated out before they can pull the pose. 0 disables probation (the report).
-    probation_frames: int = 0
+    noise: NoiseOptions = field(default_factory=NoiseOptions)
+    landmarks: LandmarkOptions = field(default_factory=LandmarkOptions)
+    gating: GatingOptions = field(default_factory=GatingOptions)
+    update: UpdateOptions = field(default_factory=UpdateOptions)
+    stalls: StallOptions = field(default_factory=StallOptions)
+    imu_error: ImuErrorOptions = field(default_factory=ImuErrorOptions)
+    motion: MotionOptions = field(default_factory=MotionOptions)
+    corrections: DataCorrections = field(default_factory=DataCorrections)
+    smoother: SmootherOptions = field(default_factory=SmootherOptions)
+    refinement: RefineOptions = field(default_factory=RefineOptions)
 
-    #: What to do with an observation whose four pixels repeat the same landmark's
-    #: previous observation bit for bit (a tracker artifact of the KITTI feature files,
-    #: see StereoObservations.repeated_mask): "skip" ignores it and the track goes on;
-    #: "split" ends the track there and starts a new one from it (after such a repeat the
-    #: tracker follows the point found at the stale pixel, usually a neighbour of the
-    #: original); "use" takes it as a measurement.
-    repeated_observations: str = "skip"
-    #: Stalled tracks (see :mod:`vislam.core.stalls`): after each exact repeat a track's
-    #: pixels behave as if taken one frame earlier. "remap" (SLAM) drops the repeat and
-    #: gives each observation at frame k to frame k − (repeats so far in its track),
-    #: online, by running the filter ``stall_max_delay_frames`` frames behind the newest
-    #: frame (the current pose is then predicted forward with the IMU samples received
-    #: since). "keep" uses every observation at the frame it arrives (needs no delay).
-    #: The remap applies with ``repeated_observations: skip`` only ("split" and "use"
-    #: decide themselves what a repeat means).
-    #: Measured on dense 0027 (the only noisy drive with ground truth): KITTI
-    #: t-error 4.01 % -> 2.73 %, ATE 4.67 -> 4.96 m; sparse files unchanged.
-    stalled_tracks: str = "remap"
-    #: Largest lag (frames) the remap can restore; observations lagging more are dropped
-    #: (dense files: 0.3 % of observations at 10, sparse: 6 %). Also the output delay of
-    #: the remapped filter.
-    stall_max_delay_frames: int = 10
-
-    # --- gating ------------------------------------------------------------------------
-    #: Chi-square gate probability for the 4-D stereo innovation (0 < p < 1), or None to
-    #: disable gating. Observations outside the gate are not used.
-    gating_probability: float | None = 0.95
-    #: A landmark whose observations fail the gate this many frames in a row is removed
-    #: from the state and kept in the map flagged as rejected (0 disables rejection).
-    max_consecutive_gated: int = 3
-    #: Innovation drift test (probability, or None to disable). After each update, what
-    #: a landmark's observation says beyond the frame's consensus pose correction is
-    #: whitened with its conditional covariance (updaters.conditional_residual_model);
-    #: for a static landmark these residuals are white, so their running sum over k
-    #: updates divided by √k is N(0, I₄). When its squared norm exceeds the chi-square(4)
-    #: quantile, the landmark is taken for a point on a moving object and rejected. It
-    #: catches vehicles whose motion hides, frame by frame, inside the gate.
-    drift_test_probability: float | None = 0.99
-
-    # --- landmark motion model (the report's proposed fix for moving landmarks) --------
-    #: Give every SLAM landmark a velocity with a constant-velocity prediction step, so
-    #: a moving point can be tracked instead of corrupting the pose. Off by default.
-    landmark_motion: bool = False
-    #: Prior 1σ of a new landmark's velocity per axis (m/s), motion model only.
-    landmark_velocity_std_mps: float = 2.0
-    #: Process noise: 1σ of a landmark's acceleration per axis (m/s²), motion model only.
-    landmark_acceleration_std_mps2: float = 1.0
-
-    # --- filter variant ----------------------------------------------------------------
-    #: "oc" (default): the observability-constrained EKF — measurement Jacobians are
-    #: projected so the unobservable global pose stays unobservable (no spurious
-    #: information from re-linearization), see updaters.oc_project. "standard": the
-    #: report's EKF equations exactly.
-    ekf: str = "oc"
-
-    #: Chart of the SLAM landmarks in the state: "inverse_depth" — anchored inverse depth
-    #: (α, β, ρ) = (x/z, y/z, 1/z) in the left camera frame of the frame that initialized
-    #: the landmark, exact for a stereo observation at initialization and well behaved for
-    #: distant points — or "cartesian" (the report's position in the world). Maps and
-    #: outputs are Cartesian either way. With landmark_motion the landmarks are Cartesian.
-    #: Measured (OC-EKF): with max_depth_m 60 inverse depth is better (dense 0027 ATE
-    #: 4.38 against 4.96 m; simulator pose NEES 17 against 24, 8 x 150 frames); with
-    #: max_depth_m 200 the Cartesian chart is (dense 0027 2.48 against 3.71 m; NEES 14
-    #: against 20); sparse files equal either way. Inverse depth with update_iterations 3
-    #: and max_depth_m 200 is the consistent configuration (see update_iterations).
-    #: Default "inverse_depth" since 2026-11-30 (with the adaptive iterated update, see
-    #: update_iteration_tolerance, and level_velocity_jacobian): the consistent filter.
-    landmark_parametrization: str = "inverse_depth"
-
-    #: Iterations of the SLAM update per frame: 1 is the EKF (linearized once, at the
-    #: prior); n > 1 the iterated EKF, which re-linearizes the frame's joint update at the
-    #: updated estimate n − 1 more times (each iteration costs about one update). With
-    #: landmark_parametrization "inverse_depth", 3 iterations and max_depth_m 200 the
-    #: filter is consistent on the simulator with the dense files' IMU noise (vislam
-    #: consistency --runs 20: pose NEES 8.08, landmark NEES 3.72) but over dense 0027 and
-    #: six variants (benchmarks/noise_draws.py) mean ATE 4.05 m / KITTI t 2.93 % against
-    #: the defaults' 3.59 m / 2.82 %, at 2.5x the filter time. With Cartesian landmarks
-    #: iterating makes the NEES worse (3 iterations: 22 against 14, 8 x 150 frames): the
-    #: Cartesian landmark prior is a linearized, skewed triangulation, and converging on
-    #: it converges on its error. See update_iteration_tolerance for the adaptive form.
-    #: Default 4 (a maximum, with update_iteration_tolerance 0.5) since 2026-11-30.
-    #: With landmark_motion (Cartesian landmarks with a velocity) the update is not iterated.
-    update_iterations: int = 4
-    #: With update_iterations > 1: stop iterating once the next re-linearization would
-    #: move the estimate by less than this many standard deviations (pose, and each
-    #: observed landmark, marginally; the step predicted to first order with the last
-    #: gain, see updaters.slam_update_iterated), so update_iterations is a maximum. 0
-    #: always does update_iterations updates.
-    #: Measured with inverse depth, update_iterations 4 and 0.5: simulator pose NEES 8.14,
-    #: landmark NEES 3.68 (vislam consistency --runs 20; on 8 x 150 frames 7.5, with 0.2
-    #: 7.6, 3 fixed iterations 7.5), where frames iterate (0.5 px against a prior several
-    #: px wide); on the KITTI files (2 px) 1.00-1.01 updates per frame, so the real-data
-    #: results are inverse depth's with one update: dense 0027 and six variants mean ATE 3.66 m /
-    #: KITTI t 2.75 % (defaults 3.59 / 2.82; eight more variants 3.94 / 2.92 against
-    #: 4.06 / 3.00), dense 0027 as shared 3.43 m / 2.58 % (defaults 2.79 / 2.44), sparse
-    #: 0020/0027 2.13 / 1.93 m (the same), at about 1.3-1.5x the defaults' filter time.
-    #: Default 0.5 since 2026-11-30 (with inverse depth, 4 iterations at most and
-    #: level_velocity_jacobian; measurements of that combination in the README's
-    #: consistency section).
-    update_iteration_tolerance: float = 0.5
-
-    # --- IMU-error state (SLAM; see vislam.core.propagation) ----------------------------
-    #: Stationary 1σ of the slowly varying error b_v of the recorded linear-velocity
-    #: samples (m/s; one number or three, per axis of the frame the samples are given in,
-    #: see velocity_frame). With this or imu_bias_sigma_radps > 0 the SLAM filter
-    #: estimates b = (b_v, b_ω), a first-order Gauss-Markov process (u_meas = u_true + b +
-    #: w; b_{k+1} = a b_k + η, a = exp(−τ/T_c), η ~ N(0, (1 − a²) σ_b²)), jointly with the
-    #: pose and landmarks; the prediction uses u_meas − b̂. The white part stays
-    #: velocity_noise_mps. On top of velocity_bias_mps/gyro_bias_radps (constant data
-    #: corrections). Default 0 (with imu_bias_sigma_radps 0): off, the filter without it.
-    #: Localization, mapping and the smoother ignore it.
-    imu_bias_sigma_mps: float | tuple[float, float, float] = 0.0
-    #: Stationary 1σ of the slowly varying error b_ω of the angular-velocity samples
-    #: (rad/s; one number or three, IMU axes). See imu_bias_sigma_mps. Default 0.
-    imu_bias_sigma_radps: float | tuple[float, float, float] = 0.0
-    #: Correlation time T_c of the IMU-error state (s, > 0): a = exp(−τ/T_c) per step. A
-    #: long T_c makes b nearly a constant bias. Default 5 s.
-    imu_bias_time_constant_s: float = 5.0
-
-    # --- state management ------------------------------------------------------------
-    #: Keep every landmark in the SLAM state for the whole run (the report's variant;
-    #: cost grows with the map). By default a landmark is marginalized when its track ends.
-    keep_all_landmarks: bool = False
-
-    # --- data corrections (applied to the recording by vislam.core.corrections) ----------
-    # ``vislam check`` estimates these; all defaults leave the data untouched.
-    #: Gyro bias (rad/s, IMU x, y, z), subtracted from every angular-velocity sample.
-    gyro_bias_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    #: Velocity bias (m/s, IMU x, y, z), subtracted from every linear-velocity sample.
-    velocity_bias_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    #: Factor on every linear-velocity sample (before the bias is subtracted): the
-    #: recorded value times this is the speed in m/s. A recording in km/h needs 1/3.6
-    #: (0.2778), one in mph 0.44704, a wheel odometry that reads 5 % fast 1/1.05.
-    velocity_scale: float = 1.0
-    #: Factor that turns the recording's timestamps into seconds (0.001 for a recording
-    #: stamped in milliseconds, 1e-9 in nanoseconds).
-    timestamp_scale: float = 1.0
-    #: Correction of the IMU-camera rotation: a rotation vector in the camera frame
-    #: (degrees; axis times angle). The rotation block of cam_T_imu becomes
-    #: ``exp(φ) @ R``; its translation (the IMU origin in the camera frame) is kept.
-    imu_camera_rotation_correction_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    #: Replace the recording's cam_T_imu by this 4x4 rigid transform (rows), or None to
-    #: keep it. The rotation correction above applies on top of it.
-    cam_T_imu: tuple | None = None
-    #: Which velocity sample describes the interval k -> k+1, see VELOCITY_ASSOCIATIONS.
-    velocity_association: str = "next"
-    #: Camera-IMU time offset (s): the velocity sample stamped t describes the motion at
-    #: t + time_offset_s. The velocities are resampled (linear interpolation) at the
-    #: frame times before use.
-    time_offset_s: float = 0.0
-    #: The frame of the linear velocities, see VELOCITY_FRAMES. With "level" each sample
-    #: is turned into the body frame with the current estimate's roll and pitch (the
-    #: world z axis, i.e. the first IMU frame's, taken as up) before the prediction, so
-    #: the vertical motion comes from the velocities' own z and an attitude error no
-    #: longer tilts the forward motion up or down.
-    velocity_frame: str = "level"
-    #: With velocity_frame "level": propagate the covariance with the exact transition,
-    #: which includes that the body velocity depends on the estimated roll and pitch
-    #: (F = Ad(exp(−τ û)) − τ J_l ∂u/∂δ, see propagation.body_twist_jacobian); false
-    #: keeps F = Ad(exp(−τ û)), as if the body velocity were measured. Measured: IMU-only
-    #: localization NEES on the simulator 6.41 -> 5.91 (50 x 100 frames; 6 is exact);
-    #: SLAM NEES unchanged; SLAM on dense 0027 and six noise draws/outlier variants
-    #: (benchmarks/noise_draws.py, 7 runs) mean ATE 3.59 -> 3.09 m, KITTI t 2.82 ->
-    #: 2.90 % (as shared 2.79 -> 3.15 m, 2.44 -> 2.77 %); sparse 0020/0027 ATE the same,
-    #: KITTI t 2.19 -> 2.02 % and 2.14 -> 2.11 %.
-    #: Default true since 2026-11-30: it is the exact transition.
-    level_velocity_jacobian: bool = True
-
-    # --- sliding-window smoother (mode "smoother", vislam.core.smoother) ---------------
-    #: Length of the fixed-lag window (s): poses older than this, and landmarks not
-    #: observed for this long, are marginalized. 3 s = 30 frames at 10 Hz.
-    smoother_window_s: float = 3.0
-    #: 1σ of one pixel coordinate in the smoother's stereo factors (px), or None for
-    #: pixel_noise_px. The smoother relinearizes, so it needs none of the margin for
-    #: linearization error that the EKF's pixel_noise_px default carries; the KITTI
-    #: features scatter by ~1.5 px around their ground-truth projections.
-    smoother_pixel_noise_px: float | None = 1.0
-    #: Robust kernel of the stereo factors: "cauchy" (default), "huber" or "none".
-    smoother_kernel: str = "cauchy"
-    #: Scale of the kernel in units of the whitened error (σ = smoother_pixel_noise_px).
-    #: Chosen with σ = 1 px on dense 0027 (ATE 4.4 / 3.0 / 2.7 m for scales 1 / 2 / 3)
-    #: and the simulator with 10 % moving landmarks, where 3 lets the moving points pull
-    #: the poses (ATE 0.115 against 0.050 m for 2).
-    smoother_kernel_scale: float = 2.0
-    #: iSAM2 relinearization threshold (norm of a variable's tangent update). 0.01
-    #: rather than GTSAM's usual 0.1 or the prototype's 0.05: dense 0027 2.6 m against
-    #: 2.8 m ATE, the simulator 0.028 against 0.034 m, for ~15 % more time per frame.
-    smoother_relinearize_threshold: float = 0.01
-    #: 1σ of the weak position prior on each new landmark (m), around its triangulation.
-    smoother_landmark_prior_m: float = 30.0
-    #: An observation whose whitened error (norm, in σ) exceeds this after the update of
-    #: its frame is removed from the smoother (counted as gated); a landmark gated
-    #: max_consecutive_gated times in a row is rejected. 0 disables the check. 4 rather
-    #: than 6: on the simulator with 10 % moving landmarks and 2 % outliers (300 frames,
-    #: seed 0) ATE 0.0031 against 0.0039 m (the clean drive: 0.0021 m); dense 0027
-    #: 2.76 m / 1.46 % against 2.59 m / 1.50 %.
-    smoother_outlier_sigma: float = 4.0
-    #: Drift test of the smoother (a ratio, or None to disable; SmootherFilter._drift_test):
-    #: after each update, each landmark observed in the frame checked has its whitened
-    #: residuals over the window regressed on time; a point on a moving vehicle, fitted
-    #: as static, drifts one way. A landmark whose trend statistic exceeds this many
-    #: times the median of the landmarks tested in the same frame, and whose apparent
-    #: speed exceeds smoother_drift_min_speed_mps, is rejected and its factors in the
-    #: window removed. Relative to the median rather than a chi-square quantile: σ is not
-    #: the features' true scatter (0.5 px on the simulator, ~1.5 px on KITTI) and on real
-    #: data static points trend too (dense 0027: 1 % of the tests beyond 27 times the
-    #: median; the simulator: static points 6 times, half the tests of moving ones 21).
-    #: 8 on the simulator's 600-frame drives, seeds 0-4, with 10 % moving landmarks and
-    #: 2 % outliers: ATE 1.04-1.49x the clean drive's (6: 0.86-1.68x, off: 0.98-2.27x);
-    #: dense 0027 2.43 m / 1.56 % (6: 2.34 m / 1.53 %, off: 2.15 m / 1.49 %).
-    smoother_drift_ratio: float | None = 8.0
-    #: Apparent speed (m/s) below which the drift test does not take a trend for motion
-    #: (the point fitted as moving at constant velocity over its observations). Dense
-    #: 0027's trending static points: median 0.4 m/s, 90 % under 2.4; the simulator's
-    #: vehicles: 90 % of the tests above 2.6 m/s.
-    smoother_drift_min_speed_mps: float = 2.0
-    #: Compute the marginal covariance of the newest pose every frame (the result's
-    #: pose_covariance, EKF convention). Off by default: GTSAM's marginal of the newest
-    #: pose costs as much as the update itself (dense 0027: 72 s of marginals against
-    #: 64 s of updates), which breaks real time; without it pose_covariance is None.
-    smoother_pose_covariance: bool = False
-
-    # --- batch refinement (mode "smoother" with refine) ----------------------------------
-    #: After the smoother, a batch Levenberg-Marquardt pass over the whole drive from the
-    #: smoother's final estimate (``vislam run --refine``).
-    refine: bool = False
-    #: Robust kernel of the refinement's stereo factors.
-    refine_kernel: str = "huber"
-    #: Scale of the refinement's kernel, in units of the whitened error.
-    refine_kernel_scale: float = 1.0
-    #: Second pass without the stereo factors whose reprojection error after the first
-    #: pass exceeds this (px; largest of the three StereoPoint2 coordinates).
-    refine_outlier_px: float = 6.0
-    #: Iteration limit of each Levenberg-Marquardt pass.
-    refine_max_iterations: int = 100
-
-    def __post_init__(self):
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name in PER_AXIS_FIELDS:
-                object.__setattr__(self, f.name, _per_axis(f.name, value))
-            elif f.name in VECTOR_FIELDS:
-                object.__setattr__(self, f.name, _three_numbers(f.name, value))
-            elif f.name == "cam_T_imu":
-                object.__setattr__(self, f.name, _rigid_or_none(value))
-            elif f.name == "velocity_association":
-                if value not in VELOCITY_ASSOCIATIONS:
-                    raise ConfigError(f"velocity_association must be one of {', '.join(VELOCITY_ASSOCIATIONS)}, "
-                                      f"got {value!r}")
-            elif f.name in ("velocity_scale", "timestamp_scale"):
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                        or value <= 0:
-                    raise ConfigError(f"{f.name} must be a number > 0, got {value!r}")
-            elif f.name == "time_offset_s":
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                    raise ConfigError(f"time_offset_s must be a finite number (s), got {value!r}")
-            elif f.name in ("gating_probability", "drift_test_probability"):
-                if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                          or not 0.0 < value < 1.0):
-                    raise ConfigError(f"{f.name} must be in (0, 1) or null, got {value!r}")
-            elif f.name == "smoother_drift_ratio":
-                if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                          or not math.isfinite(value) or value <= 1.0):
-                    raise ConfigError(f"{f.name} must be a number > 1 or null, got {value!r}")
-            elif f.name == "repeated_observations":
-                if value not in REPEATED_POLICIES:
-                    raise ConfigError(f"repeated_observations must be one of {', '.join(REPEATED_POLICIES)}, got {value!r}")
-            elif f.name == "velocity_frame":
-                if value not in VELOCITY_FRAMES:
-                    raise ConfigError(f"velocity_frame must be one of {', '.join(VELOCITY_FRAMES)}, got {value!r}")
-            elif f.name == "stalled_tracks":
-                if value not in STALL_POLICIES:
-                    raise ConfigError(f"stalled_tracks must be one of {', '.join(STALL_POLICIES)}, got {value!r}")
-            elif f.name == "smoother_pixel_noise_px":
-                if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                          or not math.isfinite(value) or value <= 0):
-                    raise ConfigError(f"smoother_pixel_noise_px must be a number > 0 (px) or null, got {value!r}")
-            elif f.name in ("smoother_kernel", "refine_kernel"):
-                if value not in KERNELS:
-                    raise ConfigError(f"{f.name} must be one of {', '.join(KERNELS)}, got {value!r}")
-            elif f.name == "landmark_parametrization":
-                if value not in LANDMARK_PARAMETRIZATIONS:
-                    raise ConfigError(f"landmark_parametrization must be one of "
-                                      f"{', '.join(LANDMARK_PARAMETRIZATIONS)}, got {value!r}")
-            elif f.name == "ekf":
-                if value not in EKF_VARIANTS:
-                    raise ConfigError(f"ekf must be one of {', '.join(EKF_VARIANTS)}, got {value!r}")
-            elif isinstance(f.default, bool):
-                if not isinstance(value, bool):
-                    raise ConfigError(f"{f.name} must be true or false, got {value!r}")
-            elif f.name in ("max_consecutive_gated", "init_frames", "probation_frames", "stall_max_delay_frames",
-                            "refine_max_iterations", "update_iterations"):
-                low = 1 if f.name in ("init_frames", "refine_max_iterations", "update_iterations") else 0
-                if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                    raise ConfigError(f"{f.name} must be an integer >= {low}, got {value!r}")
+    def __init__(self, **values):
+        changes: dict[str, dict[str, Any]] = {}
+        groups: dict[str, Any] = {}
+        for key, value in values.items():
+            if key in OPTION_GROUPS:
+                cls = OPTION_GROUPS[key]
+                if isinstance(value, Mapping):
+                    value = _build_group(key, value)
+                elif not isinstance(value, cls):
+                    raise ConfigError(f"{key} must be a {cls.__name__} (or a mapping of its fields), got "
+                                      f"{type(value).__name__}")
+                groups[key] = value
+            elif key in FLAT_FIELDS:
+                group, name = FLAT_FIELDS[key]
+                changes.setdefault(group, {})[name] = value
             else:
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                    raise ConfigError(f"{f.name} must be a finite number, got {value!r}")
-                if value < 0:
-                    raise ConfigError(f"{f.name} must be >= 0, got {value!r}")
-        if self.pixel_noise_px <= 0:
-            raise ConfigError("pixel_noise_px must be > 0 (the update needs a positive-definite V)")
-        for name in ("imu_bias_time_constant_s", "smoother_window_s", "smoother_kernel_scale",
-                     "smoother_landmark_prior_m", "refine_kernel_scale", "refine_outlier_px"):
-            if getattr(self, name) <= 0:
-                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        if self.min_depth_m >= self.max_depth_m:
-            raise ConfigError("min_depth_m must be smaller than max_depth_m")
+                hint = did_you_mean(key, [*FLAT_FIELDS, *OPTION_GROUPS])
+                raise TypeError(f"FilterOptions got an unexpected keyword argument {key!r}" + (f"; {hint}" if hint
+                                                                                                else ""))
+        for group, cls in OPTION_GROUPS.items():
+            value = groups.get(group)
+            if group in changes:
+                value = dataclasses.replace(value, **changes[group]) if value is not None else cls(**changes[group])
+            object.__setattr__(self, group, value if value is not None else _DEFAULT_GROUPS[group])
 
-    # --- derived matrices ----------------------------------------------------------------
+    # --- derived values ------------------------------------------------------------------
     @property
     def remaps_stalled_tracks(self) -> bool:
         """Whether SLAM runs the stalled-track remap (see :attr:`stalled_tracks`)."""
-        return self.stalled_tracks == "remap" and self.repeated_observations == "skip"
+        return self.stalls.policy == "remap" and self.stalls.repeated_observations == "skip"
 
     @property
     def W(self) -> np.ndarray:
@@ -461,65 +548,68 @@ class FilterOptions:
     @property
     def imu_bias_sigma(self) -> np.ndarray:
         """(6,) stationary σ of b = (b_v, b_ω) (m/s ×3, rad/s ×3)."""
-        return np.concatenate([_axis_array(self.imu_bias_sigma_mps), _axis_array(self.imu_bias_sigma_radps)])
+        return np.concatenate([_axis_array(self.imu_error.sigma_mps), _axis_array(self.imu_error.sigma_radps)])
 
     @property
     def velocity_noise_per_axis(self) -> np.ndarray:
         """(3,) σ_v per IMU axis (m/s)."""
-        return _axis_array(self.velocity_noise_mps)
+        return _axis_array(self.noise.velocity_mps)
 
     @property
     def angular_noise_per_axis(self) -> np.ndarray:
         """(3,) σ_ω per IMU axis (rad/s)."""
-        return _axis_array(self.angular_noise_radps)
+        return _axis_array(self.noise.angular_radps)
 
     @property
     def has_data_corrections(self) -> bool:
         """True when some option changes the data (see vislam.core.corrections)."""
-        defaults = FilterOptions.__dataclass_fields__
-        return any(getattr(self, name) != defaults[name].default for name in DATA_CORRECTION_FIELDS)
+        return self.corrections != _DEFAULT_GROUPS["corrections"]
 
     @property
     def V(self) -> np.ndarray:
         """4x4 observation noise covariance of one stereo observation."""
-        return np.eye(4) * self.pixel_noise_px**2
+        return np.eye(4) * self.noise.pixel_px**2
 
     @property
     def initial_pose_covariance(self) -> np.ndarray:
-        return np.diag([self.initial_position_std_m**2] * 3 + [self.initial_rotation_std_rad**2] * 3)
+        return np.diag([self.noise.initial_position_std_m**2] * 3 + [self.noise.initial_rotation_std_rad**2] * 3)
 
     @property
     def gate_threshold(self) -> float:
         """Chi-square(4) quantile for :attr:`gating_probability` (inf when gating is off)."""
-        return _chi2_4_quantile(self.gating_probability)
+        return _chi2_4_quantile(self.gating.probability)
 
     @property
     def drift_threshold(self) -> float:
         """Chi-square(4) quantile for :attr:`drift_test_probability` (inf when off)."""
-        return _chi2_4_quantile(self.drift_test_probability)
+        return _chi2_4_quantile(self.gating.drift_test_probability)
 
     # --- (de)serialization ------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """Plain values (tuples as lists), safe for JSON and YAML."""
-        return {k: _as_lists(v) for k, v in dataclasses.asdict(self).items()}
+        """Flat plain values (tuples as lists), safe for JSON and YAML: the shape of
+        summary.json's ``options``, suggested.yaml and sweep results."""
+        return {flat: _as_lists(getattr(getattr(self, g), n)) for flat, (g, n) in FLAT_FIELDS.items()}
+
+    def to_nested_dict(self) -> dict[str, dict[str, Any]]:
+        """Plain values by group (``{"noise": {"velocity_mps": ...}, ...}``)."""
+        return nest_options(self.to_dict())
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any], source: str = "options") -> "FilterOptions":
-        """Build from a mapping; unknown keys and bad values raise ConfigError naming ``source``."""
+        """Build from a mapping of flat names, of groups to their fields, or both; unknown
+        keys and bad values raise ConfigError naming ``source``."""
         if not isinstance(values, Mapping):
             raise ConfigError(f"{source}: expected a mapping of option names to values, got {type(values).__name__}")
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted((k for k in values if k not in known), key=repr)
+        values = flatten_options(values, source)
+        unknown = sorted((k for k in values if k not in FLAT_FIELDS), key=repr)
         if unknown:
-            raise ConfigError(f"{source}: {unknown_names_message('option(s)', unknown, known)}")
+            raise ConfigError(f"{source}: {_unknown_message(unknown)}")
         clean = {}
         for key, value in values.items():
-            default = getattr(cls, key)
-            if key == "smoother_pixel_noise_px":
-                default = 1.0  # a float (null allowed)
-            if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            kind = _FIELD_OF[key].metadata["kind"]
+            if kind in ("number", "per_axis") and isinstance(value, int) and not isinstance(value, bool):
                 value = float(value)
-            if key in PER_AXIS_FIELDS + VECTOR_FIELDS + ("cam_T_imu",) and isinstance(value, list):
+            if kind in ("per_axis", "vector3", "rigid") and isinstance(value, list):
                 value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
             clean[key] = value
         try:
@@ -528,7 +618,40 @@ class FilterOptions:
             raise ConfigError(f"{source}: {exc}") from None
 
     def replace(self, **changes) -> "FilterOptions":
+        """A copy with ``changes`` (flat names or groups), validated."""
         return dataclasses.replace(self, **changes)
+
+
+def _unknown_message(unknown: list) -> str:
+    """"unknown option(s) ..." with "did you mean"; a field's name in its group given at
+    the top level is pointed to its flat name and group."""
+    for key in unknown:
+        places = [(flat, g) for flat, (g, n) in FLAT_FIELDS.items() if n == key and flat != key]
+        if len(unknown) == 1 and places:
+            where = " or ".join(f"{flat!r} (or {key!r} in group {g!r})" for flat, g in places)
+            return f"unknown option {key!r}; at the top level it is {where}"
+    return unknown_names_message("option(s)", unknown, [*FLAT_FIELDS, *OPTION_GROUPS])
+
+
+def _build_group(group: str, values: Mapping[str, Any]):
+    known = _group_fields(group)
+    unknown = [k for k in values if k not in known]
+    if unknown:
+        raise ConfigError(f"group {group!r}: {unknown_names_message('option(s)', unknown, known)}")
+    return OPTION_GROUPS[group](**values)
+
+
+def _flat_property(flat: str, group: str, name: str) -> property:
+    f = _FIELD_OF[flat]
+    unit = f" ({f.metadata['unit']})" if f.metadata["unit"] else ""
+    return property(operator.attrgetter(f"{group}.{name}"),
+                    doc=f"{f.metadata['doc']}{unit}; default {f.default!r}. Read-only: ``{group}.{name}``.")
+
+
+for _flat, (_group, _name) in FLAT_FIELDS.items():
+    setattr(FilterOptions, _flat, _flat_property(_flat, _group, _name))
+del _flat, _group, _name
+
 
 
 def _as_lists(value):
@@ -564,18 +687,51 @@ def _per_axis(name: str, value):
     return value
 
 
-def _rigid_or_none(value):
+def _rigid(name: str, value):
     if value is None:
         return None
     try:
         a = np.array(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ConfigError(f"cam_T_imu must be a 4x4 matrix (4 rows of 4 numbers) or null, got {value!r}") from None
+        raise ConfigError(f"{name} must be a 4x4 matrix (4 rows of 4 numbers) or null, got {value!r}") from None
     if a.shape != (4, 4) or not np.all(np.isfinite(a)):
-        raise ConfigError(f"cam_T_imu must be a 4x4 matrix of finite numbers or null, got shape {a.shape}")
+        raise ConfigError(f"{name} must be a 4x4 matrix of finite numbers or null, got shape {a.shape}")
     R = a[:3, :3]
     if (not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0
             or not np.allclose(a[3], [0.0, 0.0, 0.0, 1.0])):
-        raise ConfigError("cam_T_imu must be a rigid transform: a rotation block (orthonormal, det +1) and last "
+        raise ConfigError(f"{name} must be a rigid transform: a rotation block (orthonormal, det +1) and last "
                           "row 0 0 0 1")
     return tuple(tuple(float(x) for x in row) for row in a)
+
+
+#: The groups with their defaults (validated once).
+_DEFAULT_GROUPS = {group: cls() for group, cls in OPTION_GROUPS.items()}
+
+
+def _default_text(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_default_text(v) for v in value) + "]"
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def reference_markdown() -> str:
+    """The options' reference tables (Markdown, one per group) from the fields' metadata:
+    the block between the markers of docs/options.md (tests/test_options_groups.py
+    checks that the page holds exactly this)."""
+    lines = []
+    for group, cls in OPTION_GROUPS.items():
+        lines += [f"### `{group}`: {cls.TITLE}", "", " ".join(cls.__doc__.split()), "",
+                  "| flat name | in the group | unit | default | what it does |", "|---|---|---|---|---|"]
+        for f in fields(cls):
+            m = f.metadata
+            what = m["doc"].replace("|", "\\|")
+            if m["kind"] == "choice":
+                what += f" ({' / '.join(m['choices'])})"
+            default = _default_text(f.default)
+            lines.append(f"| `{m['flat'] or f.name}` | `{f.name}` | {m['unit'] or '–'} | `{default}` | {what} |")
+        lines.append("")
+    return "\n".join(lines).rstrip() + "\n"

@@ -5,12 +5,20 @@ Option resolution (lowest to highest precedence):
 1. the documented defaults of :class:`~vislam.core.options.FilterOptions`;
 1b. with ``vislam run --auto``, the suggestions of ``vislam check`` (``base``);
 2. an options file (``--config FILE``): YAML (``.yaml``/``.yml``) or TOML (``.toml``),
-   a flat mapping of FilterOptions field names to values, e.g.::
+   a mapping of FilterOptions' flat names to values, of its groups to their fields, or
+   both (an option given both ways is an error), e.g.::
 
        # filter.yaml                       # filter.toml
        velocity_noise_mps: 0.5             velocity_noise_mps = 0.5
        angular_noise_radps: 0.05           angular_noise_radps = 0.05
        gating_probability: null            gating_probability = "none"
+
+       # the same, nested                  # the same, nested
+       noise:                              [noise]
+         velocity_mps: 0.5                 velocity_mps = 0.5
+         angular_radps: 0.05               angular_radps = 0.05
+       gating:                             [gating]
+         probability: null                 probability = "none"
 
    The optional tests (``gating_probability``, ``drift_test_probability``,
    ``smoother_drift_ratio``) accept ``null`` (YAML), ``false`` or the string
@@ -36,7 +44,7 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
-from vislam.core.options import FilterOptions
+from vislam.core.options import FilterOptions, flatten_options
 from vislam.errors import ConfigError
 
 __all__ = ["CONFIG_SUFFIXES", "OPTIONAL_FIELDS", "read_config_document", "load_options_file", "resolve_options", "load_known_poses",
@@ -123,8 +131,10 @@ def read_config_document(path, what: str = "options file") -> Any:
 
 
 def load_options_file(path) -> dict[str, Any]:
-    """The mapping of an options file (YAML or TOML, by suffix); not yet validated
-    against FilterOptions (see :func:`resolve_options`). An empty YAML file is ``{}``."""
+    """The mapping of an options file (YAML or TOML, by suffix), flat: groups of options
+    (``noise: {velocity_mps: 0.5}``, a ``[noise]`` table) become their flat names
+    (:func:`~vislam.core.options.flatten_options`); not yet validated against
+    FilterOptions (see :func:`resolve_options`). An empty YAML file is ``{}``."""
     path = Path(path)
     values = read_config_document(path, "options file")
     if values is None:
@@ -134,11 +144,7 @@ def load_options_file(path) -> dict[str, Any]:
     bad_keys = [k for k in values if not isinstance(k, str)]
     if bad_keys:
         raise ConfigError(f"{path}: option names must be strings, got {bad_keys[0]!r}")
-    nested = [k for k, v in values.items() if isinstance(v, Mapping)]
-    if nested:
-        raise ConfigError(f"{path}: option {nested[0]!r} is a table/mapping; the file must be a flat mapping of "
-                          f"option names to values")
-    return dict(values)
+    return flatten_options(values, source=str(path))
 
 
 def _normalize(values: Mapping[str, Any]) -> dict[str, Any]:

@@ -12,6 +12,7 @@ A sweep SPEC (YAML or TOML) lists::
       default: {}
       loose: {velocity_noise_mps: 0.1, gating_probability: null}
       dense: dense.yaml             # or an options file (YAML/TOML), relative to the SPEC
+      nested: {noise: {velocity_mps: 0.5}}   # groups of options, as in an options file
     noise:                          # named injected-noise settings (NoiseSpec fields, no seed)
       none: {}                      #   (default: {none: {}})
       imu: {velocity_noise_mps: 0.3, angular_noise_radps: 0.006}
@@ -80,7 +81,7 @@ except ImportError:  # pragma: no cover - not POSIX: no lock
     fcntl = None
 
 from vislam.core.noise import NoiseSpec
-from vislam.core.options import MODES, FilterOptions
+from vislam.core.options import MODES, FilterOptions, flatten_options
 from vislam.core.suggest import unknown_names_message
 from vislam.errors import ConfigError, OutputError, VislamError
 from vislam.tools.config import _one_line, read_config_document
@@ -304,7 +305,7 @@ def parse_spec(raw: Any, source: str = "spec", base_dir=None) -> SweepSpec:
         elif value is None:
             values = {}
         elif isinstance(value, Mapping):
-            values = dict(value)
+            values = flatten_options(value, where)  # groups of options -> flat names
         else:
             raise ConfigError(f"{where}: expected a mapping of FilterOptions fields or an options file, got "
                               f"{type(value).__name__}")

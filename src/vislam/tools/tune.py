@@ -175,7 +175,7 @@ def run_tune(source, engine=None, base: Mapping[str, Any] | None = None, frames:
         sequence = _load(str(source))
     task_source = sequence if source is None else str(source)
     check = check_estimates(sequence)
-    search = NoiseSearch(space, start_pixel_noise_px=FilterOptions.__dataclass_fields__["pixel_noise_px"].default)
+    search = NoiseSearch(space, start_pixel_noise_px=FilterOptions().pixel_noise_px)
     i = 0
     futures: list = []
     try:
