@@ -191,6 +191,20 @@ class TrackerStatistics:
     rejected_affine: int = 0  # the affine refinement against the first appearance failed
     rejected_drift: int = 0  # drifted from the track's first triangulation
     left_image: int = 0  # left the image
+    #: per end reason (the keys of "rejections" but stereo_new): how many frames the ended tracks lasted,
+    #: as a histogram (index = length, the last bin holds everything longer)
+    end_lengths: dict = field(default_factory=dict)
+
+    _REASONS = {"forward_backward": "lost_temporal", "left_image": "left_image",
+                "stereo_tracked": "rejected_stereo_tracked", "appearance": "rejected_affine",
+                "geometric": "rejected_geometric", "drift": "rejected_drift"}
+    _MAX_LENGTH = 100
+
+    def count_end(self, reason: str, lengths: np.ndarray) -> None:
+        """Tracks that ended for ``reason`` after ``lengths`` frames."""
+        setattr(self, self._REASONS[reason], getattr(self, self._REASONS[reason]) + int(lengths.size))
+        hist = np.bincount(np.minimum(lengths, self._MAX_LENGTH), minlength=self._MAX_LENGTH + 1)
+        self.end_lengths[reason] = self.end_lengths.get(reason, 0) + hist
 
     def to_dict(self, track_lengths: np.ndarray | None = None) -> dict[str, Any]:
         counts = np.asarray(self.tracks_per_frame, dtype=float)
@@ -213,6 +227,12 @@ class TrackerStatistics:
                 "drift": self.rejected_drift,
             },
         }
+        out["track_ends"] = {}
+        for reason, hist in sorted(self.end_lengths.items()):
+            cum = np.cumsum(hist)
+            out["track_ends"][reason] = {"count": int(cum[-1]),
+                                         "median_length": int(np.searchsorted(cum, cum[-1] / 2.0)),
+                                         "ended_within_4_frames": int(cum[4])}
         if track_lengths is not None:
             lengths = np.asarray(track_lengths)
             out["tracks"] = int(lengths.size)
@@ -241,20 +261,16 @@ class StereoTracker:
         self.baseline_m = float(baseline_m)
         self.stats = TrackerStatistics()
         self._next_id = 0
-        self._prev_pyramid = None
-        self._ids = np.zeros(0, dtype=np.int64)
-        self._pixels = np.zeros((0, 4))  # [uL, vL, uR, vR] of the live tracks in the previous frame
+        self._prev_left = None  # the previous left image
         self._shape = None
         self._motion = None  # (R, t) of the last frame-to-frame camera motion, q_new = R q_old + t
         self._motion_ok = False  # whether the last frame's P3P check found the motion
         self._cam_T_ref = np.eye(4)  # chained motions: current camera from the first frame's camera
-        self._p_in_ref = np.zeros((0, 3))  # per track: first triangulation in the first frame's camera (NaN: none)
         r = self.options.affine_radius_px
         g = np.arange(-r, r + 1, dtype=np.float32)
         gx, gy = np.meshgrid(g, g)
         self._offsets = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (m, 2)
-        self._templates = np.zeros((0, self._offsets.shape[0]), np.float32)
-        self._A = np.zeros((0, 2, 2, 2))  # per track: left and right warps
+        self._live = _Tracks.empty(self._offsets.shape[0])
         o = self.options
         self._criteria = (self._cv2.TERM_CRITERIA_COUNT | self._cv2.TERM_CRITERIA_EPS, o.klt_iterations,
                           o.klt_epsilon_px)
@@ -488,8 +504,17 @@ class StereoTracker:
 
         Returns ``(ids (n,) int64 strictly increasing, pixels (n, 4) [uL, vL, uR, vR])``.
         """
-        cv2 = self._cv2
-        o = self.options
+        frame = self._frame(left, right)
+        tracks = self._live
+        if len(tracks) and self._prev_left is not None:
+            tracks = self._track_temporal(frame, tracks)
+            tracks = self._track_stereo(frame, tracks)
+            tracks = self._check_geometry(tracks)
+        tracks = tracks.concat(self._new_tracks(frame, tracks))
+        return self._commit(frame, tracks)
+
+    def _frame(self, left, right) -> dict:
+        """The checked pair and what the steps share of it (gradients for the affine step)."""
         left = np.ascontiguousarray(left)
         right = np.ascontiguousarray(right)
         if left.ndim != 2 or left.shape != right.shape or left.dtype != np.uint8 or right.dtype != np.uint8:
@@ -498,87 +523,116 @@ class StereoTracker:
             self._shape = left.shape
         elif left.shape != self._shape:
             raise ValueError(f"image size changed from {self._shape} to {left.shape}")
-        pyr_l, pyr_r = left, right  # (OpenCV's Python binding takes images, not prebuilt pyramids)
+        frame = {"left": left, "right": right}
+        if self.options.affine_radius_px > 0:
+            frame["grad_left"], frame["grad_right"] = self._gradients(left), self._gradients(right)
+        return frame
+
+    def _end(self, tracks: "_Tracks", keep: np.ndarray, reason: str) -> "_Tracks":
+        """Tracks where ``keep``; the others end, counted under ``reason`` with their length."""
+        ended = ~keep
+        n = int(np.count_nonzero(ended))
+        if n:
+            self.stats.count_end(reason, self.stats.frames - tracks.born[ended])
+        return tracks.take(keep)
+
+    def _track_temporal(self, frame, tracks: "_Tracks") -> "_Tracks":
+        """Step 1: KLT of the live tracks from the previous left image, forward-backward check."""
+        o = self.options
+        guess = self._predict(tracks.pixels)
+        cur, ok, fb = self._klt(self._prev_left, frame["left"], tracks.pixels[:, :2], guess, o.klt_levels)
+        tracks = self._end(tracks, ok & (fb <= o.fb_threshold_px), "forward_backward")
+        cur = cur[ok & (fb <= o.fb_threshold_px)]
+        inside = self._inside(cur)
+        tracks = self._end(tracks, inside, "left_image")
+        tracks.prev, tracks.pixels = tracks.pixels, np.concatenate([cur[inside], tracks.pixels[:, 2:]], axis=1)
+        return tracks
+
+    def _track_stereo(self, frame, tracks: "_Tracks") -> "_Tracks":
+        """Step 2 and 2b: left-to-right match from the last disparity, affine refinement of both."""
+        o = self.options
+        disparity = tracks.prev[:, 0] - tracks.prev[:, 2]
+        stereo, sok = self._stereo(frame["left"], frame["right"], tracks.pixels[:, :2], disparity, o.klt_levels)
+        tracks = self._end(tracks, sok, "stereo_tracked")
+        tracks.pixels = stereo[sok]
+        if o.affine_radius_px <= 0:
+            return tracks
+        pl, AL, okl = self._affine(frame["grad_left"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0])
+        pr, AR, okr = self._affine(frame["grad_right"], tracks.templates, tracks.pixels[:, 2:], tracks.warps[:, 1])
+        tracks.pixels = np.concatenate([pl, pr], axis=1)
+        tracks.warps = np.stack([AL, AR], axis=1)
+        return self._end(tracks, okl & okr & self._stereo_ok(tracks.pixels), "appearance")
+
+    def _check_geometry(self, tracks: "_Tracks") -> "_Tracks":
+        """Steps 3 and 3b: P3P-RANSAC against the previous triangulation, then the drift check."""
+        tracks = self._end(tracks, self._geometric_inliers(tracks.prev, tracks.pixels), "geometric")
+        if not self._motion_ok:  # the chain is broken: no drift reference for the tracks alive now
+            tracks.refs = np.full_like(tracks.refs, np.nan)
+            return tracks
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = self._motion
+        self._cam_T_ref = step @ self._cam_T_ref
+        return self._end(tracks, self._drift_ok(tracks.refs, tracks.pixels), "drift")
+
+    def _new_tracks(self, frame, tracks: "_Tracks") -> "_Tracks":
+        """Step 4: corners in the cells below their share, matched into the right image."""
+        o = self.options
+        new = self._detect(frame["left"], tracks.pixels[:, :2])
         st = self.stats
+        st.detected += new.shape[0]
+        stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels)
+        st.rejected_stereo_new += int(np.count_nonzero(~sok))
+        stereo = stereo[sok]
+        A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
+        tpl = np.zeros((stereo.shape[0], self._offsets.shape[0]), np.float32)
+        if o.affine_radius_px > 0 and stereo.shape[0]:
+            tpl = self._sample(frame["grad_left"], stereo[:, :2], A[:, 0])[..., 0].astype(np.float32)
+            pr, A[:, 1], okr = self._affine(frame["grad_right"], tpl, stereo[:, 2:], A[:, 1])
+            stereo = np.concatenate([stereo[:, :2], pr], axis=1)
+            aok = okr & self._stereo_ok(stereo) & (tpl.std(axis=1) > 2.0)
+            st.rejected_stereo_new += int(np.count_nonzero(~aok))
+            stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
+        n = stereo.shape[0]
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        ref_T_cam = np.linalg.inv(self._cam_T_ref)
+        refs = self._triangulate(stereo) @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]
+        return _Tracks(ids, stereo, np.full((n, 4), np.nan), tpl, A, refs, np.full(n, st.frames, np.int64))
 
-        use_affine = o.affine_radius_px > 0
-        if use_affine:
-            grad_l, grad_r = self._gradients(left), self._gradients(right)
-        m = self._offsets.shape[0]
-        ids = np.zeros(0, np.int64)
-        pixels = np.zeros((0, 4))
-        templates = np.zeros((0, m), np.float32)
-        warps = np.zeros((0, 2, 2, 2))
-        if self._ids.size and self._prev_pyramid is not None:
-            prev = self._pixels
-            guess = self._predict(prev)
-            cur, ok, fb = self._klt(self._prev_pyramid, pyr_l, prev[:, :2], guess, o.klt_levels)
-            ok &= fb <= o.fb_threshold_px
-            st.lost_temporal += int(np.count_nonzero(~ok))
-            inside = self._inside(cur)
-            st.left_image += int(np.count_nonzero(ok & ~inside))
-            ok &= inside
-            prev, cur, tid = prev[ok], cur[ok], self._ids[ok]
-            tpl, A, ref = self._templates[ok], self._A[ok], self._p_in_ref[ok]
-            disparity = prev[:, 0] - prev[:, 2]
-            stereo, sok = self._stereo(pyr_l, pyr_r, cur, disparity, o.klt_levels)
-            st.rejected_stereo_tracked += int(np.count_nonzero(~sok))
-            prev, stereo, tid, tpl, A, ref = prev[sok], stereo[sok], tid[sok], tpl[sok], A[sok], ref[sok]
-            if use_affine:
-                pl, AL, okl = self._affine(grad_l, tpl, stereo[:, :2], A[:, 0])
-                pr, AR, okr = self._affine(grad_r, tpl, stereo[:, 2:], A[:, 1])
-                stereo = np.concatenate([pl, pr], axis=1)
-                A = np.stack([AL, AR], axis=1)
-                aok = okl & okr & self._stereo_ok(stereo)
-                st.rejected_affine += int(np.count_nonzero(~aok))
-                prev, stereo, tid, tpl, A, ref = prev[aok], stereo[aok], tid[aok], tpl[aok], A[aok], ref[aok]
-            geo = self._geometric_inliers(prev, stereo)
-            st.rejected_geometric += int(np.count_nonzero(~geo))
-            ids, pixels, templates, warps, refs = tid[geo], stereo[geo], tpl[geo], A[geo], ref[geo]
-            if self._motion_ok:
-                step = np.eye(4)
-                step[:3, :3], step[:3, 3] = self._motion
-                self._cam_T_ref = step @ self._cam_T_ref
-                dok = self._drift_ok(refs, pixels)
-                st.rejected_drift += int(np.count_nonzero(~dok))
-                ids, pixels, templates, warps, refs = ids[dok], pixels[dok], templates[dok], warps[dok], refs[dok]
-            else:  # the chain is broken: no drift reference for the tracks alive now
-                refs = np.full_like(refs, np.nan)
-        else:
-            refs = np.zeros((0, 3))
+    def _commit(self, frame, tracks: "_Tracks") -> tuple[np.ndarray, np.ndarray]:
+        """Keep this frame's tracks (sorted by id) and its left image for the next one."""
+        tracks = tracks.take(np.argsort(tracks.ids, kind="stable"))
+        self._live, self._prev_left = tracks, frame["left"]
+        self.stats.frames += 1
+        self.stats.tracks_per_frame.append(len(tracks))
+        return tracks.ids.copy(), tracks.pixels.copy()
 
-        new = self._detect(left, pixels[:, :2])
-        if new.shape[0]:
-            st.detected += new.shape[0]
-            stereo, sok = self._stereo(pyr_l, pyr_r, new, np.zeros(new.shape[0]), o.stereo_levels)
-            st.rejected_stereo_new += int(np.count_nonzero(~sok))
-            stereo = stereo[sok]
-            A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
-            if use_affine:
-                tpl = self._sample(grad_l, stereo[:, :2], A[:, 0])[..., 0].astype(np.float32)
-                pr, AR, okr = self._affine(grad_r, tpl, stereo[:, 2:], A[:, 1])
-                stereo = np.concatenate([stereo[:, :2], pr], axis=1)
-                A[:, 1] = AR
-                aok = okr & self._stereo_ok(stereo) & (tpl.std(axis=1) > 2.0)
-                st.rejected_stereo_new += int(np.count_nonzero(~aok))
-                stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
-            else:
-                tpl = np.zeros((stereo.shape[0], m), np.float32)
-            new_ids = np.arange(self._next_id, self._next_id + stereo.shape[0], dtype=np.int64)
-            self._next_id += stereo.shape[0]
-            ids = np.concatenate([ids, new_ids])
-            pixels = np.concatenate([pixels, stereo])
-            templates = np.concatenate([templates, tpl])
-            warps = np.concatenate([warps, A])
-            ref_T_cam = np.linalg.inv(self._cam_T_ref)
-            refs = np.concatenate([refs, self._triangulate(stereo) @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]])
-        order = np.argsort(ids, kind="stable")
-        ids, pixels = ids[order], pixels[order]
-        self._templates, self._A, self._p_in_ref = templates[order], warps[order], refs[order]
-        self._ids, self._pixels, self._prev_pyramid = ids, pixels, pyr_l
-        st.frames += 1
-        st.tracks_per_frame.append(int(ids.size))
-        return ids.copy(), pixels.copy()
+
+@dataclass
+class _Tracks:
+    """The live tracks, one row per track in every array."""
+
+    ids: np.ndarray  # (n,) int64
+    pixels: np.ndarray  # (n, 4) [uL, vL, uR, vR] in the current frame
+    prev: np.ndarray  # (n, 4) ... in the previous frame (NaN for new tracks)
+    templates: np.ndarray  # (n, m) float32: the first left appearance (affine step)
+    warps: np.ndarray  # (n, 2, 2, 2): left and right affine warps of the template
+    refs: np.ndarray  # (n, 3): first triangulation in the first frame's camera (NaN: none)
+    born: np.ndarray  # (n,) int64: frame index of the first observation
+
+    @classmethod
+    def empty(cls, m: int) -> "_Tracks":
+        return cls(np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, m), np.float32),
+                   np.zeros((0, 2, 2, 2)), np.zeros((0, 3)), np.zeros(0, np.int64))
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+    def take(self, keep) -> "_Tracks":
+        return _Tracks(*(getattr(self, f.name)[keep] for f in fields(self)))
+
+    def concat(self, other: "_Tracks") -> "_Tracks":
+        return _Tracks(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
 
 
 def finish_tracks(frames: list[tuple[np.ndarray, np.ndarray]], min_track_length: int):
