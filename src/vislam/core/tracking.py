@@ -101,6 +101,8 @@ class TrackerOptions:
     affine_iterations: int = 12
     #: KLT pyramid levels above the full image (temporal tracking).
     klt_levels: int = 3
+    #: KLT pyramid levels of the stereo match of a tracked point (started at its last disparity).
+    stereo_tracked_levels: int = 1
     #: KLT pyramid levels of the stereo match of a new corner (no disparity guess yet).
     stereo_levels: int = 4
     #: KLT iterations per level and the convergence threshold (px).
@@ -123,6 +125,11 @@ class TrackerOptions:
     ransac_iterations: int = 100
     #: Fewest tracked points for the geometric check (fewer: the check is skipped).
     ransac_min_points: int = 12
+    #: A new corner is started only if its stereo point, carried by the last frame-to-frame motion
+    #: (constant velocity), stays in view for at least this many frames (0 = off; before the first
+    #: motion is known every corner is started). On a forward-moving car the corners at the image
+    #: sides leave within a few frames; the budget goes to those that stay.
+    min_expected_frames: int = 0
     #: Tracks seen in fewer frames are left out of the output (see :func:`finish_tracks`).
     min_track_length: int = 3
 
@@ -133,7 +140,8 @@ class TrackerOptions:
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                     raise ConfigError(f"{f.name} must be an integer, got {value!r}")
                 object.__setattr__(self, f.name, int(value))
-                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px") else 1):
+                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px", "stereo_tracked_levels",
+                                             "min_expected_frames") else 1):
                     raise ConfigError(f"{f.name} must be >= 1, got {value!r}")
             else:
                 if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
@@ -191,6 +199,7 @@ class TrackerStatistics:
     rejected_affine: int = 0  # the affine refinement against the first appearance failed
     rejected_drift: int = 0  # drifted from the track's first triangulation
     left_image: int = 0  # left the image
+    not_started: int = 0  # new corners expected to leave the view too soon (min_expected_frames)
     #: per end reason (the keys of "rejections" but stereo_new): how many frames the ended tracks lasted,
     #: as a histogram (index = length, the last bin holds everything longer)
     end_lengths: dict = field(default_factory=dict)
@@ -217,6 +226,7 @@ class TrackerStatistics:
                 "max": int(counts.max()) if counts.size else 0,
             },
             "detected": self.detected,
+            "not_started": self.not_started,
             "rejections": {
                 "forward_backward": self.lost_temporal,
                 "left_image": self.left_image,
@@ -270,6 +280,9 @@ class StereoTracker:
         g = np.arange(-r, r + 1, dtype=np.float32)
         gx, gy = np.meshgrid(g, g)
         self._offsets = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (m, 2)
+        g = np.arange(-r - 1, r + 2, dtype=np.float32)
+        gx, gy = np.meshgrid(g, g)
+        self._offsets_ext = np.stack([gx.ravel(), gy.ravel()], axis=1)  # one pixel more, for dT/dx
         self._live = _Tracks.empty(self._offsets.shape[0])
         o = self.options
         self._criteria = (self._cv2.TERM_CRITERIA_COUNT | self._cv2.TERM_CRITERIA_EPS, o.klt_iterations,
@@ -359,67 +372,79 @@ class StereoTracker:
         err = np.maximum(np.hypot(uL - pixels[:, 0], v - pixels[:, 1]), np.hypot(uR - pixels[:, 2], v - pixels[:, 3]))
         return good & (err <= o.ransac_threshold_px)
 
-    def _sample(self, image, pts, A):
-        """(n, m[, channels]) values of ``image`` at ``pts + A @ offsets`` (bilinear)."""
+    def _sample(self, image, pts, A, offsets=None):
+        """(n, m) values of the float32 ``image`` at ``pts + A @ offsets`` (bilinear)."""
         cv2 = self._cv2
+        offsets = self._offsets if offsets is None else offsets
         if pts.shape[0] == 0:
-            return np.zeros((0, self._offsets.shape[0]) + image.shape[2:], np.float32)
-        ox, oy = self._offsets[None, :, 0], self._offsets[None, :, 1]
+            return np.zeros((0, offsets.shape[0]), np.float32)
+        ox, oy = offsets[None, :, 0], offsets[None, :, 1]
         mx = (pts[:, 0:1] + A[:, 0, 0:1] * ox + A[:, 0, 1:2] * oy).astype(np.float32)
         my = (pts[:, 1:2] + A[:, 1, 0:1] * ox + A[:, 1, 1:2] * oy).astype(np.float32)
         return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
-    def _affine(self, images, templates, pts, A):
-        """Gauss-Newton of ``image(pts + A x) = g T(x) + c`` over (pts, A, g, c) per track.
+    def _templates(self, image, pts):
+        """(n, m, 7) float32 per new track: its (2r+1)^2 patch T of ``image`` at ``pts`` and the
+        patch's steepest-descent images dT/dp of the six affine parameters (central differences)."""
+        r = self.options.affine_radius_px
+        s = 2 * r + 3
+        patch = self._sample(image, pts, np.tile(np.eye(2), (pts.shape[0], 1, 1)), self._offsets_ext)
+        patch = patch.reshape(-1, s, s)
+        T = patch[:, 1:-1, 1:-1].reshape(pts.shape[0], -1)
+        Tx = (0.5 * (patch[:, 1:-1, 2:] - patch[:, 1:-1, :-2])).reshape(pts.shape[0], -1)
+        Ty = (0.5 * (patch[:, 2:, 1:-1] - patch[:, :-2, 1:-1])).reshape(pts.shape[0], -1)
+        x, y = self._offsets[None, :, 0], self._offsets[None, :, 1]
+        return np.stack([T, Tx, Ty, Tx * x, Tx * y, Ty * x, Ty * y], axis=-1).astype(np.float32)
 
-        ``images``: (h, w, 3) float32 of the image and its d/du, d/dv. Returns (pts, A, ok)."""
+    def _affine(self, image, templates, pts, A):
+        """Inverse-compositional Gauss-Newton of ``image(pts + A x) = g T(x) + c`` per track.
+
+        The template's steepest-descent images (:meth:`_templates`) and with them the normal
+        matrix are fixed over the iterations, so each iteration samples the float32 ``image``
+        once (no image gradients). Returns (pts, A, ok)."""
         o = self.options
         n = pts.shape[0]
         if n == 0:
             return pts, A, np.zeros(0, bool)
         pts = pts.astype(np.float64).copy()
         A = A.astype(np.float64).copy()
+        T_all = templates[..., 0]
+        J = np.concatenate([templates[..., 1:], T_all[..., None], np.ones_like(T_all[..., None])], axis=-1)
+        H = np.matmul(J.transpose(0, 2, 1), J).astype(np.float64) + 1e-6 * np.eye(8)
+        try:
+            H_inv = np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            return pts, A, np.zeros(n, bool)
         gain = np.ones(n)
         bias = np.zeros(n)
-        x, y = self._offsets[None, :, 0], self._offsets[None, :, 1]
-        T_all = templates.astype(np.float32)
         active = np.arange(n)  # tracks still moving by more than 1e-3 px per iteration
         for _ in range(o.affine_iterations):
-            T = T_all[active]
-            S = self._sample(images, pts[active], A[active])  # (k, m, 3) float32
-            Ix, Iy = S[..., 1], S[..., 2]
-            r = S[..., 0] - gain[active, None].astype(np.float32) * T - bias[active, None].astype(np.float32)
-            J = np.stack([Ix, Iy, Ix * x, Ix * y, Iy * x, Iy * y, -T, -np.ones_like(T)], axis=-1)  # (k, m, 8)
-            Jt = J.transpose(0, 2, 1)
-            H = (Jt @ J).astype(np.float64) + 1e-6 * np.eye(8)
-            b = (Jt @ r[..., None]).astype(np.float64)
-            try:
-                d = -np.linalg.solve(H, b)[..., 0]
-            except np.linalg.LinAlgError:
-                return pts, A, np.zeros(n, bool)
+            S = self._sample(image, pts[active], A[active])  # (k, m)
+            r = S - gain[active, None] * T_all[active] - bias[active, None]
+            b = np.matmul(r.astype(np.float32)[:, None, :], J[active])  # (k, 1, 8)
+            d = np.matmul(H_inv[active], b.transpose(0, 2, 1).astype(np.float64))[..., 0]
             d = np.where(np.isfinite(d), d, 0.0)
-            pts[active] += d[:, :2]
-            A[active] += d[:, 2:6].reshape(-1, 2, 2)
+            g = np.maximum(gain[active], 0.1)
+            dA = np.eye(2) + (d[:, 2:6] / g[:, None]).reshape(-1, 2, 2)
+            ok = np.abs(np.linalg.det(dA)) > 1e-3
+            dA[~ok] = np.eye(2)
+            A_new = A[active] @ np.linalg.inv(dA)  # W(x; p) o W(x; dp)^-1
+            step = -np.einsum("kij,kj->ki", A_new, d[:, :2] / g[:, None])
+            pts[active] += step
+            A[active] = A_new
             gain[active] += d[:, 6]
             bias[active] += d[:, 7]
-            active = active[np.abs(d[:, :2]).max(axis=1) >= 1e-3]
+            active = active[np.abs(step).max(axis=1) >= 1e-3]
             if active.size == 0:
                 break
         T = T_all.astype(np.float64)
-        img = images
-        I = self._sample(img, pts, A)[..., 0].astype(np.float64)
+        I = self._sample(image, pts, A).astype(np.float64)
         rms = np.sqrt(np.mean((I - gain[:, None] * T - bias[:, None]) ** 2, axis=1))
         contrast = T.std(axis=1) + 1e-6
         det = np.linalg.det(A)
         ok = (rms / contrast <= o.affine_max_residual) & (det > 0.2) & (det < 5.0) & (gain > 0.3) & (gain < 3.0)
         ok &= np.isfinite(pts).all(axis=1) & self._inside(pts)
         return pts, A, ok
-
-    def _gradients(self, image):
-        cv2 = self._cv2
-        f = image.astype(np.float32)
-        return cv2.merge([f, cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, scale=0.125),
-                          cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)])
 
     def _predict(self, prev):
         """Predicted left pixels of the live tracks from the last motion (constant velocity)."""
@@ -447,6 +472,19 @@ class StereoTracker:
         z = np.where(q[:, 2] > 0.1, q[:, 2], np.nan)
         v = fy * q[:, 1] / z + cy
         return np.stack([fx * q[:, 0] / z + cx, v, fx * (q[:, 0] - self.baseline_m) / z + cx, v], axis=1)
+
+    def _expected_frames(self, stereo, horizon: int) -> np.ndarray:
+        """(n,) frames (up to ``horizon``) the stereo points stay in both images under the last motion."""
+        R, t = self._motion
+        q = self._triangulate(stereo)
+        frames = np.zeros(stereo.shape[0], np.int64)
+        alive = np.ones(stereo.shape[0], bool)
+        for _ in range(horizon):
+            px = self._project(q)
+            alive &= np.isfinite(px).all(axis=1) & self._inside(px[:, :2]) & self._inside(px[:, 2:])
+            frames += alive
+            q = q @ R.T + t
+        return frames
 
     def _drift_ok(self, p_in_ref, pixels):
         """True where the chained first triangulation reprojects within drift_threshold_px."""
@@ -525,7 +563,7 @@ class StereoTracker:
             raise ValueError(f"image size changed from {self._shape} to {left.shape}")
         frame = {"left": left, "right": right}
         if self.options.affine_radius_px > 0:
-            frame["grad_left"], frame["grad_right"] = self._gradients(left), self._gradients(right)
+            frame["left_f"], frame["right_f"] = left.astype(np.float32), right.astype(np.float32)
         return frame
 
     def _end(self, tracks: "_Tracks", keep: np.ndarray, reason: str) -> "_Tracks":
@@ -552,13 +590,14 @@ class StereoTracker:
         """Step 2 and 2b: left-to-right match from the last disparity, affine refinement of both."""
         o = self.options
         disparity = tracks.prev[:, 0] - tracks.prev[:, 2]
-        stereo, sok = self._stereo(frame["left"], frame["right"], tracks.pixels[:, :2], disparity, o.klt_levels)
+        stereo, sok = self._stereo(frame["left"], frame["right"], tracks.pixels[:, :2], disparity,
+                                   o.stereo_tracked_levels)
         tracks = self._end(tracks, sok, "stereo_tracked")
         tracks.pixels = stereo[sok]
         if o.affine_radius_px <= 0:
             return tracks
-        pl, AL, okl = self._affine(frame["grad_left"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0])
-        pr, AR, okr = self._affine(frame["grad_right"], tracks.templates, tracks.pixels[:, 2:], tracks.warps[:, 1])
+        pl, AL, okl = self._affine(frame["left_f"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0])
+        pr, AR, okr = self._affine(frame["right_f"], tracks.templates, tracks.pixels[:, 2:], tracks.warps[:, 1])
         tracks.pixels = np.concatenate([pl, pr], axis=1)
         tracks.warps = np.stack([AL, AR], axis=1)
         return self._end(tracks, okl & okr & self._stereo_ok(tracks.pixels), "appearance")
@@ -584,14 +623,18 @@ class StereoTracker:
         st.rejected_stereo_new += int(np.count_nonzero(~sok))
         stereo = stereo[sok]
         A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
-        tpl = np.zeros((stereo.shape[0], self._offsets.shape[0]), np.float32)
+        tpl = np.zeros((stereo.shape[0], self._offsets.shape[0], 7), np.float32)
         if o.affine_radius_px > 0 and stereo.shape[0]:
-            tpl = self._sample(frame["grad_left"], stereo[:, :2], A[:, 0])[..., 0].astype(np.float32)
-            pr, A[:, 1], okr = self._affine(frame["grad_right"], tpl, stereo[:, 2:], A[:, 1])
+            tpl = self._templates(frame["left_f"], stereo[:, :2])
+            pr, A[:, 1], okr = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1])
             stereo = np.concatenate([stereo[:, :2], pr], axis=1)
-            aok = okr & self._stereo_ok(stereo) & (tpl.std(axis=1) > 2.0)
+            aok = okr & self._stereo_ok(stereo) & (tpl[..., 0].std(axis=1) > 2.0)
             st.rejected_stereo_new += int(np.count_nonzero(~aok))
             stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
+        if o.min_expected_frames > 0 and self._motion_ok:
+            stay = self._expected_frames(stereo, o.min_expected_frames) >= o.min_expected_frames
+            st.not_started += int(np.count_nonzero(~stay))
+            stereo, tpl, A = stereo[stay], tpl[stay], A[stay]
         n = stereo.shape[0]
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
@@ -615,14 +658,14 @@ class _Tracks:
     ids: np.ndarray  # (n,) int64
     pixels: np.ndarray  # (n, 4) [uL, vL, uR, vR] in the current frame
     prev: np.ndarray  # (n, 4) ... in the previous frame (NaN for new tracks)
-    templates: np.ndarray  # (n, m) float32: the first left appearance (affine step)
+    templates: np.ndarray  # (n, m, 7) float32: the first left appearance and its dT/dp (affine step)
     warps: np.ndarray  # (n, 2, 2, 2): left and right affine warps of the template
     refs: np.ndarray  # (n, 3): first triangulation in the first frame's camera (NaN: none)
     born: np.ndarray  # (n,) int64: frame index of the first observation
 
     @classmethod
     def empty(cls, m: int) -> "_Tracks":
-        return cls(np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, m), np.float32),
+        return cls(np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, m, 7), np.float32),
                    np.zeros((0, 2, 2, 2)), np.zeros((0, 3)), np.zeros(0, np.int64))
 
     def __len__(self) -> int:
