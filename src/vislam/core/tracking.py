@@ -75,6 +75,8 @@ class TrackerOptions:
     #: Detection grid: columns x rows of cells, each filled to its share of target_features.
     grid_cols: int = 10
     grid_rows: int = 4
+    #: A cell whose last detection started no track is not tried again for this many frames.
+    detect_retry_frames: int = 4
     #: Shi-Tomasi quality level (fraction of the best corner's score).
     quality_level: float = 0.005
     #: Smallest distance between two corners / a new corner and a live track (px).
@@ -97,8 +99,10 @@ class TrackerOptions:
     #: relative to the template's contrast (RMS / standard deviation).
     affine_radius_px: int = 6
     affine_max_residual: float = 0.4
-    #: Gauss-Newton iterations of the affine refinement.
+    #: Gauss-Newton iterations of the affine refinement, at most; a track stops when its step is
+    #: below affine_step_px.
     affine_iterations: int = 12
+    affine_step_px: float = 0.01
     #: KLT pyramid levels above the full image (temporal tracking).
     klt_levels: int = 3
     #: KLT pyramid levels of the stereo match of a tracked point (started at its last disparity).
@@ -140,7 +144,7 @@ class TrackerOptions:
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                     raise ConfigError(f"{f.name} must be an integer, got {value!r}")
                 object.__setattr__(self, f.name, int(value))
-                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px", "stereo_tracked_levels",
+                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px", "stereo_tracked_levels", "detect_retry_frames",
                                              "min_expected_frames") else 1):
                     raise ConfigError(f"{f.name} must be >= 1, got {value!r}")
             else:
@@ -284,6 +288,8 @@ class StereoTracker:
         gx, gy = np.meshgrid(g, g)
         self._offsets_ext = np.stack([gx.ravel(), gy.ravel()], axis=1)  # one pixel more, for dT/dx
         self._live = _Tracks.empty(self._offsets.shape[0])
+        self._cell_rest = None  # per detection cell: frames until it is tried again
+        self._cells_tried = np.zeros(0, np.int64)
         o = self.options
         self._criteria = (self._cv2.TERM_CRITERIA_COUNT | self._cv2.TERM_CRITERIA_EPS, o.klt_iterations,
                           o.klt_epsilon_px)
@@ -379,8 +385,9 @@ class StereoTracker:
         if pts.shape[0] == 0:
             return np.zeros((0, offsets.shape[0]), np.float32)
         ox, oy = offsets[None, :, 0], offsets[None, :, 1]
-        mx = (pts[:, 0:1] + A[:, 0, 0:1] * ox + A[:, 0, 1:2] * oy).astype(np.float32)
-        my = (pts[:, 1:2] + A[:, 1, 0:1] * ox + A[:, 1, 1:2] * oy).astype(np.float32)
+        pts, A = pts.astype(np.float32), A.astype(np.float32)
+        mx = pts[:, 0:1] + A[:, 0, 0:1] * ox + A[:, 0, 1:2] * oy
+        my = pts[:, 1:2] + A[:, 1, 0:1] * ox + A[:, 1, 1:2] * oy
         return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def _templates(self, image, pts):
@@ -415,26 +422,27 @@ class StereoTracker:
             H_inv = np.linalg.inv(H)
         except np.linalg.LinAlgError:
             return pts, A, np.zeros(n, bool)
-        gain = np.ones(n)
-        bias = np.zeros(n)
-        active = np.arange(n)  # tracks still moving by more than 1e-3 px per iteration
+        gain = np.ones(n, np.float32)
+        bias = np.zeros(n, np.float32)
+        active = np.arange(n)  # tracks still moving by more than affine_step_px per iteration
         for _ in range(o.affine_iterations):
             S = self._sample(image, pts[active], A[active])  # (k, m)
             r = S - gain[active, None] * T_all[active] - bias[active, None]
-            b = np.matmul(r.astype(np.float32)[:, None, :], J[active])  # (k, 1, 8)
+            b = np.matmul(r[:, None, :], J[active])  # (k, 1, 8)
             d = np.matmul(H_inv[active], b.transpose(0, 2, 1).astype(np.float64))[..., 0]
             d = np.where(np.isfinite(d), d, 0.0)
             g = np.maximum(gain[active], 0.1)
-            dA = np.eye(2) + (d[:, 2:6] / g[:, None]).reshape(-1, 2, 2)
-            ok = np.abs(np.linalg.det(dA)) > 1e-3
-            dA[~ok] = np.eye(2)
-            A_new = A[active] @ np.linalg.inv(dA)  # W(x; p) o W(x; dp)^-1
+            a, b_, c, e = (d[:, 2 + i] / g for i in range(4))  # dA = I + [[a, b], [c, e]]
+            det = (1 + a) * (1 + e) - b_ * c
+            det = np.where(np.abs(det) > 1e-3, det, 1.0)
+            dA_inv = np.stack([1 + e, -b_, -c, 1 + a], axis=1).reshape(-1, 2, 2) / det[:, None, None]
+            A_new = A[active] @ dA_inv  # W(x; p) o W(x; dp)^-1
             step = -np.einsum("kij,kj->ki", A_new, d[:, :2] / g[:, None])
             pts[active] += step
             A[active] = A_new
             gain[active] += d[:, 6]
             bias[active] += d[:, 7]
-            active = active[np.abs(step).max(axis=1) >= 1e-3]
+            active = active[np.abs(step).max(axis=1) >= o.affine_step_px]
             if active.size == 0:
                 break
         T = T_all.astype(np.float64)
@@ -497,11 +505,33 @@ class StereoTracker:
                          np.hypot(pred[:, 2] - pixels[:, 2], pred[:, 3] - pixels[:, 3]))
         return ~(err > o.drift_threshold_px)  # NaN (no reference point): kept
 
+    def _cell_of(self, p):
+        o = self.options
+        h, w = self._shape
+        cx = np.clip((p[:, 0] / (w / o.grid_cols)).astype(int), 0, o.grid_cols - 1)
+        cy = np.clip((p[:, 1] / (h / o.grid_rows)).astype(int), 0, o.grid_rows - 1)
+        return cy * o.grid_cols + cx
+
     def _detect(self, image, existing):
-        """New corners (n, 2) in the cells below their share, away from ``existing`` (m, 2)."""
+        """New corners (n, 2) in the cells below their share, away from ``existing`` (m, 2).
+
+        Shi-Tomasi runs on each such cell alone (not on the whole image), for up to twice the
+        cell's need (some fail the stereo match or leave too soon); a cell whose last attempt
+        started no track rests for ``detect_retry_frames`` frames (sky, far road)."""
         cv2 = self._cv2
         o = self.options
         h, w = self._shape
+        n_cells = o.grid_cols * o.grid_rows
+        if self._cell_rest is None:
+            self._cell_rest = np.zeros(n_cells, np.int64)
+        self._cell_rest = np.maximum(self._cell_rest - 1, 0)
+        quota = int(math.ceil(o.target_features / n_cells))
+        have = np.bincount(self._cell_of(existing), minlength=n_cells) if existing.size else np.zeros(n_cells, int)
+        need = np.where(self._cell_rest == 0, np.maximum(quota - have, 0), 0)
+        self._cells_tried, self._need = np.flatnonzero(need), need
+        if need.sum() == 0 or existing.shape[0] >= o.target_features + n_cells:
+            self._cells_tried = np.zeros(0, np.int64)
+            return np.zeros((0, 2))
         mask = np.zeros((h, w), np.uint8)
         bd = o.border_px
         side = max(bd, int(round(o.side_band_fraction * w)))
@@ -509,32 +539,35 @@ class StereoTracker:
         r = int(math.ceil(o.min_distance_px))
         for x, y in np.round(existing).astype(int):
             cv2.circle(mask, (int(x), int(y)), r, 0, -1)
-        cell_w, cell_h = w / o.grid_cols, h / o.grid_rows
-        n_cells = o.grid_cols * o.grid_rows
-        quota = int(math.ceil(o.target_features / n_cells))
+        out = []
+        for c in self._cells_tried:
+            x0, x1 = int(c % o.grid_cols * w / o.grid_cols), int((c % o.grid_cols + 1) * w / o.grid_cols)
+            y0, y1 = int(c // o.grid_cols * h / o.grid_rows), int((c // o.grid_cols + 1) * h / o.grid_rows)
+            if not mask[y0:y1, x0:x1].any():
+                continue
+            corners = cv2.goodFeaturesToTrack(image[y0:y1, x0:x1], maxCorners=2 * int(need[c]),
+                                              qualityLevel=o.quality_level, minDistance=o.min_distance_px,
+                                              mask=np.ascontiguousarray(mask[y0:y1, x0:x1]),
+                                              blockSize=o.block_size_px)
+            if corners is not None:
+                out.append(corners.reshape(-1, 2).astype(np.float64) + (x0, y0))
+        return np.concatenate(out) if out else np.zeros((0, 2))
 
-        def cell_of(p):
-            cx = np.clip((p[:, 0] / cell_w).astype(int), 0, o.grid_cols - 1)
-            cy = np.clip((p[:, 1] / cell_h).astype(int), 0, o.grid_rows - 1)
-            return cy * o.grid_cols + cx
-
-        have = np.bincount(cell_of(existing), minlength=n_cells) if existing.size else np.zeros(n_cells, int)
-        need = np.maximum(quota - have, 0)
-        if need.sum() == 0 or existing.shape[0] >= o.target_features + n_cells:
-            return np.zeros((0, 2))
-        corners = cv2.goodFeaturesToTrack(image, maxCorners=4 * o.target_features, qualityLevel=o.quality_level,
-                                          minDistance=o.min_distance_px, mask=mask, blockSize=o.block_size_px)
-        if corners is None:
-            return np.zeros((0, 2))
-        corners = corners.reshape(-1, 2).astype(np.float64)  # strongest first
-        cells = cell_of(corners)
-        # keep, in each cell, the strongest `need[cell]` corners
+    def _within_need(self, corners) -> np.ndarray:
+        """True for the first (strongest) corners of each cell up to the cell's need."""
+        cells = self._cell_of(corners) if corners.size else np.zeros(0, int)
         order = np.argsort(cells, kind="stable")
-        sorted_cells = cells[order]
-        first = np.searchsorted(sorted_cells, sorted_cells, side="left")
-        rank = np.arange(order.size) - first
-        keep = order[rank < need[sorted_cells]]
-        return corners[np.sort(keep)]
+        first = np.searchsorted(cells[order], cells[order], side="left")
+        keep = np.zeros(cells.size, bool)
+        keep[order] = (np.arange(order.size) - first) < self._need[cells[order]]
+        return keep
+
+    def _rest_cells(self, started) -> None:
+        """Cells tried this frame that started none of the ``started`` (n, 2) corners rest."""
+        if self._cells_tried.size:
+            hit = np.bincount(self._cell_of(started), minlength=self._cell_rest.size) if started.size else 0
+            idle = self._cells_tried[(np.zeros(self._cell_rest.size, int) + hit)[self._cells_tried] == 0]
+            self._cell_rest[idle] = self.options.detect_retry_frames
 
     # ------------------------------------------------------------------ the step
     def process(self, left, right) -> tuple[np.ndarray, np.ndarray]:
@@ -619,22 +652,29 @@ class StereoTracker:
         new = self._detect(frame["left"], tracks.pixels[:, :2])
         st = self.stats
         st.detected += new.shape[0]
+        tpl = np.zeros((new.shape[0], self._offsets.shape[0], 7), np.float32)
+        if o.affine_radius_px > 0 and new.shape[0]:
+            tpl = self._templates(frame["left_f"], new)
+            contrast = tpl[..., 0].std(axis=1) > 2.0  # not the featureless sky
+            st.rejected_stereo_new += int(np.count_nonzero(~contrast))
+            new, tpl = new[contrast], tpl[contrast]
         stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels)
         st.rejected_stereo_new += int(np.count_nonzero(~sok))
-        stereo = stereo[sok]
+        stereo, tpl = stereo[sok], tpl[sok]
         A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
-        tpl = np.zeros((stereo.shape[0], self._offsets.shape[0], 7), np.float32)
         if o.affine_radius_px > 0 and stereo.shape[0]:
-            tpl = self._templates(frame["left_f"], stereo[:, :2])
             pr, A[:, 1], okr = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1])
             stereo = np.concatenate([stereo[:, :2], pr], axis=1)
-            aok = okr & self._stereo_ok(stereo) & (tpl[..., 0].std(axis=1) > 2.0)
+            aok = okr & self._stereo_ok(stereo)
             st.rejected_stereo_new += int(np.count_nonzero(~aok))
             stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
         if o.min_expected_frames > 0 and self._motion_ok:
             stay = self._expected_frames(stereo, o.min_expected_frames) >= o.min_expected_frames
             st.not_started += int(np.count_nonzero(~stay))
             stereo, tpl, A = stereo[stay], tpl[stay], A[stay]
+        cap = self._within_need(stereo[:, :2])
+        stereo, tpl, A = stereo[cap], tpl[cap], A[cap]
+        self._rest_cells(stereo[:, :2])
         n = stereo.shape[0]
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
