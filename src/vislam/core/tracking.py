@@ -71,11 +71,12 @@ class TrackerOptions:
     """Options of :class:`StereoTracker` (units in the names; defaults documented inline)."""
 
     #: Number of live tracks the detector tops up to, spread over the grid.
-    target_features: int = 300
+    target_features: int = 450
     #: Detection grid: columns x rows of cells, each filled to its share of target_features.
     grid_cols: int = 10
     grid_rows: int = 4
-    #: A cell whose last detection started no track is not tried again for this many frames.
+    #: A cell whose last detection started fewer than a quarter of its corners as tracks is not
+    #: tried again for this many frames (doubled after each further idle try, at most 32).
     detect_retry_frames: int = 4
     #: Shi-Tomasi quality level (fraction of the best corner's score).
     quality_level: float = 0.005
@@ -89,7 +90,7 @@ class TrackerOptions:
     #: forward motion takes features out of view within a frame or two (0 = detect up to border_px).
     side_band_fraction: float = 0.15
     #: KLT window side (px, odd).
-    klt_window_px: int = 21
+    klt_window_px: int = 11
     #: Refinement of every KLT match on the full image with this smaller window (px, odd; 0 =
     #: off): a large window finds the match, a small one centred on the corner places it, so
     #: the flow elsewhere in the large window (perspective, divergence) does not shift it.
@@ -101,17 +102,17 @@ class TrackerOptions:
     affine_max_residual: float = 0.4
     #: Gauss-Newton iterations of the affine refinement, at most; a track stops when its step is
     #: below affine_step_px.
-    affine_iterations: int = 12
+    affine_iterations: int = 5
     affine_step_px: float = 0.01
     #: KLT pyramid levels above the full image (temporal tracking).
-    klt_levels: int = 3
+    klt_levels: int = 2
     #: KLT pyramid levels of the stereo match of a tracked point (started at its last disparity).
-    stereo_tracked_levels: int = 1
+    stereo_tracked_levels: int = 0
     #: KLT pyramid levels of the stereo match of a new corner (no disparity guess yet).
     stereo_levels: int = 4
     #: KLT iterations per level and the convergence threshold (px).
-    klt_iterations: int = 30
-    klt_epsilon_px: float = 0.01
+    klt_iterations: int = 10
+    klt_epsilon_px: float = 0.03
     #: Forward-backward check: largest round-trip error of a KLT match (px).
     fb_threshold_px: float = 1.0
     #: Epipolar constraint of the rectified pair: largest |vR - vL| (px).
@@ -133,7 +134,7 @@ class TrackerOptions:
     #: (constant velocity), stays in view for at least this many frames (0 = off; before the first
     #: motion is known every corner is started). On a forward-moving car the corners at the image
     #: sides leave within a few frames; the budget goes to those that stay.
-    min_expected_frames: int = 0
+    min_expected_frames: int = 10
     #: Tracks seen in fewer frames are left out of the output (see :func:`finish_tracks`).
     min_track_length: int = 3
 
@@ -455,9 +456,11 @@ class StereoTracker:
         return pts, A, ok
 
     def _predict(self, prev):
-        """Predicted left pixels of the live tracks from the last motion (constant velocity)."""
+        """Predicted left pixels (n, 2) and disparities (n,) of the live tracks from the last motion
+        (constant velocity); without one, where they were."""
+        disparity = prev[:, 0] - prev[:, 2]
         if self._motion is None or prev.shape[0] == 0:
-            return prev[:, :2].copy()
+            return prev[:, :2].copy(), disparity
         R, t = self._motion
         q = self._triangulate(prev) @ R.T + t
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
@@ -466,7 +469,7 @@ class StereoTracker:
         pred = np.stack([fx * q[:, 0] / z + cx, fy * q[:, 1] / z + cy], axis=1)
         h, w = self._shape
         good &= (pred[:, 0] > -w) & (pred[:, 0] < 2 * w) & (pred[:, 1] > -h) & (pred[:, 1] < 2 * h)
-        return np.where(good[:, None], pred, prev[:, :2])
+        return np.where(good[:, None], pred, prev[:, :2]), np.where(good, fx * self.baseline_m / z, disparity)
 
     def _stereo_ok(self, stereo):
         o = self.options
@@ -524,6 +527,7 @@ class StereoTracker:
         n_cells = o.grid_cols * o.grid_rows
         if self._cell_rest is None:
             self._cell_rest = np.zeros(n_cells, np.int64)
+            self._cell_fails = np.zeros(n_cells, np.int64)  # consecutive idle tries
         self._cell_rest = np.maximum(self._cell_rest - 1, 0)
         quota = int(math.ceil(o.target_features / n_cells))
         have = np.bincount(self._cell_of(existing), minlength=n_cells) if existing.size else np.zeros(n_cells, int)
@@ -562,12 +566,19 @@ class StereoTracker:
         keep[order] = (np.arange(order.size) - first) < self._need[cells[order]]
         return keep
 
-    def _rest_cells(self, started) -> None:
-        """Cells tried this frame that started none of the ``started`` (n, 2) corners rest."""
+    def _rest_cells(self, tried, started) -> None:
+        """Cells tried this frame that started fewer than a quarter of their ``tried`` (n, 2)
+        corners as tracks (``started``, (k, 2)) rest for ``detect_retry_frames`` frames, twice as
+        long after each further idle try (at most 32 frames)."""
         if self._cells_tried.size:
-            hit = np.bincount(self._cell_of(started), minlength=self._cell_rest.size) if started.size else 0
-            idle = self._cells_tried[(np.zeros(self._cell_rest.size, int) + hit)[self._cells_tried] == 0]
-            self._cell_rest[idle] = self.options.detect_retry_frames
+            n_cells = self._cell_rest.size
+            n_tried = np.bincount(self._cell_of(tried), minlength=n_cells) if tried.size else np.zeros(n_cells, int)
+            n_started = np.bincount(self._cell_of(started), minlength=n_cells) if started.size else np.zeros(n_cells, int)
+            tried_cells = self._cells_tried
+            idle = 4 * n_started[tried_cells] < n_tried[tried_cells]
+            self._cell_fails[tried_cells] = np.where(idle, self._cell_fails[tried_cells] + 1, 0)
+            fails = self._cell_fails[tried_cells[idle]]
+            self._cell_rest[tried_cells[idle]] = np.minimum(self.options.detect_retry_frames * 2 ** (fails - 1), 32)
 
     # ------------------------------------------------------------------ the step
     def process(self, left, right) -> tuple[np.ndarray, np.ndarray]:
@@ -610,27 +621,33 @@ class StereoTracker:
     def _track_temporal(self, frame, tracks: "_Tracks") -> "_Tracks":
         """Step 1: KLT of the live tracks from the previous left image, forward-backward check."""
         o = self.options
-        guess = self._predict(tracks.pixels)
+        guess, d_pred = self._predict(tracks.pixels)
         cur, ok, fb = self._klt(self._prev_left, frame["left"], tracks.pixels[:, :2], guess, o.klt_levels)
-        tracks = self._end(tracks, ok & (fb <= o.fb_threshold_px), "forward_backward")
-        cur = cur[ok & (fb <= o.fb_threshold_px)]
+        ok &= fb <= o.fb_threshold_px
+        tracks, cur, d_pred = self._end(tracks, ok, "forward_backward"), cur[ok], d_pred[ok]
         inside = self._inside(cur)
-        tracks = self._end(tracks, inside, "left_image")
-        tracks.prev, tracks.pixels = tracks.pixels, np.concatenate([cur[inside], tracks.pixels[:, 2:]], axis=1)
+        tracks, cur, d_pred = self._end(tracks, inside, "left_image"), cur[inside], d_pred[inside]
+        tracks.prev, tracks.pixels = tracks.pixels, np.stack([cur[:, 0], cur[:, 1], cur[:, 0] - d_pred, cur[:, 1]], 1)
         return tracks
 
     def _track_stereo(self, frame, tracks: "_Tracks") -> "_Tracks":
-        """Step 2 and 2b: left-to-right match from the last disparity, affine refinement of both."""
+        """Step 2 and 2b: left-to-right match from the predicted disparity, affine refinement of both.
+
+        With ``stereo_tracked_levels`` 0 (and the affine step on) there is no stereo KLT: the right
+        position is the refined left one moved by the predicted disparity, refined in its turn."""
         o = self.options
-        disparity = tracks.prev[:, 0] - tracks.prev[:, 2]
-        stereo, sok = self._stereo(frame["left"], frame["right"], tracks.pixels[:, :2], disparity,
-                                   o.stereo_tracked_levels)
-        tracks = self._end(tracks, sok, "stereo_tracked")
-        tracks.pixels = stereo[sok]
-        if o.affine_radius_px <= 0:
-            return tracks
+        disparity = tracks.pixels[:, 0] - tracks.pixels[:, 2]  # predicted by _track_temporal
+        if o.stereo_tracked_levels > 0 or o.affine_radius_px <= 0:
+            stereo, sok = self._stereo(frame["left"], frame["right"], tracks.pixels[:, :2], disparity,
+                                       max(1, o.stereo_tracked_levels))
+            tracks = self._end(tracks, sok, "stereo_tracked")
+            tracks.pixels = stereo[sok]
+            if o.affine_radius_px <= 0:
+                return tracks
         pl, AL, okl = self._affine(frame["left_f"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0])
-        pr, AR, okr = self._affine(frame["right_f"], tracks.templates, tracks.pixels[:, 2:], tracks.warps[:, 1])
+        guess_r = tracks.pixels[:, 2:] + (pl - tracks.pixels[:, :2]) if o.stereo_tracked_levels > 0 else \
+            pl - np.stack([disparity, np.zeros_like(disparity)], axis=1)
+        pr, AR, okr = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1])
         tracks.pixels = np.concatenate([pl, pr], axis=1)
         tracks.warps = np.stack([AL, AR], axis=1)
         return self._end(tracks, okl & okr & self._stereo_ok(tracks.pixels), "appearance")
@@ -658,9 +675,14 @@ class StereoTracker:
             contrast = tpl[..., 0].std(axis=1) > 2.0  # not the featureless sky
             st.rejected_stereo_new += int(np.count_nonzero(~contrast))
             new, tpl = new[contrast], tpl[contrast]
+        tried = new
         stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels)
         st.rejected_stereo_new += int(np.count_nonzero(~sok))
         stereo, tpl = stereo[sok], tpl[sok]
+        if o.min_expected_frames > 0 and self._motion_ok:
+            stay = self._expected_frames(stereo, o.min_expected_frames) >= o.min_expected_frames
+            st.not_started += int(np.count_nonzero(~stay))
+            stereo, tpl = stereo[stay], tpl[stay]
         A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
         if o.affine_radius_px > 0 and stereo.shape[0]:
             pr, A[:, 1], okr = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1])
@@ -668,13 +690,9 @@ class StereoTracker:
             aok = okr & self._stereo_ok(stereo)
             st.rejected_stereo_new += int(np.count_nonzero(~aok))
             stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
-        if o.min_expected_frames > 0 and self._motion_ok:
-            stay = self._expected_frames(stereo, o.min_expected_frames) >= o.min_expected_frames
-            st.not_started += int(np.count_nonzero(~stay))
-            stereo, tpl, A = stereo[stay], tpl[stay], A[stay]
         cap = self._within_need(stereo[:, :2])
         stereo, tpl, A = stereo[cap], tpl[cap], A[cap]
-        self._rest_cells(stereo[:, :2])
+        self._rest_cells(tried, stereo[:, :2])
         n = stereo.shape[0]
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
