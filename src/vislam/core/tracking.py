@@ -100,6 +100,10 @@ class TrackerOptions:
     #: relative to the template's contrast (RMS / standard deviation).
     affine_radius_px: int = 6
     affine_max_residual: float = 0.4
+    #: A track whose left warp has scaled its template by more than this (linear, area = square)
+    #: takes its current appearance as the new template (0 = never: tracks end when the warp's
+    #: determinant leaves (0.2, 5)). Approaching points grow and show finer texture than at first.
+    affine_reanchor_scale: float = 1.5
     #: Gauss-Newton iterations of the affine refinement, at most; a track stops when its step is
     #: below affine_step_px.
     affine_iterations: int = 5
@@ -134,7 +138,7 @@ class TrackerOptions:
     #: (constant velocity), stays in view for at least this many frames (0 = off; before the first
     #: motion is known every corner is started). On a forward-moving car the corners at the image
     #: sides leave within a few frames; the budget goes to those that stay.
-    min_expected_frames: int = 10
+    min_expected_frames: int = 8
     #: Tracks seen in fewer frames are left out of the output (see :func:`finish_tracks`).
     min_track_length: int = 3
 
@@ -204,6 +208,7 @@ class TrackerStatistics:
     rejected_affine: int = 0  # the affine refinement against the first appearance failed
     rejected_drift: int = 0  # drifted from the track's first triangulation
     left_image: int = 0  # left the image
+    reanchored: int = 0  # templates replaced by the current appearance (affine_reanchor_scale)
     not_started: int = 0  # new corners expected to leave the view too soon (min_expected_frames)
     #: per end reason (the keys of "rejections" but stereo_new): how many frames the ended tracks lasted,
     #: as a histogram (index = length, the last bin holds everything longer)
@@ -232,6 +237,7 @@ class TrackerStatistics:
             },
             "detected": self.detected,
             "not_started": self.not_started,
+            "reanchored": self.reanchored,
             "rejections": {
                 "forward_backward": self.lost_temporal,
                 "left_image": self.left_image,
@@ -650,7 +656,23 @@ class StereoTracker:
         pr, AR, okr = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1])
         tracks.pixels = np.concatenate([pl, pr], axis=1)
         tracks.warps = np.stack([AL, AR], axis=1)
-        return self._end(tracks, okl & okr & self._stereo_ok(tracks.pixels), "appearance")
+        tracks = self._end(tracks, okl & okr & self._stereo_ok(tracks.pixels), "appearance")
+        return self._reanchor(frame, tracks)
+
+    def _reanchor(self, frame, tracks: "_Tracks") -> "_Tracks":
+        """Tracks whose left warp has grown past ``affine_reanchor_scale`` (the point came closer)
+        take their current left appearance as the template; the right warp follows."""
+        s = self.options.affine_reanchor_scale
+        if s <= 0 or not len(tracks):
+            return tracks
+        grown = np.flatnonzero(np.linalg.det(tracks.warps[:, 0]) > s * s)
+        if grown.size:
+            AL_inv = np.linalg.inv(tracks.warps[grown, 0])
+            tracks.templates[grown] = self._templates(frame["left_f"], tracks.pixels[grown, :2])
+            tracks.warps[grown, 1] = tracks.warps[grown, 1] @ AL_inv
+            tracks.warps[grown, 0] = np.eye(2)
+            self.stats.reanchored += int(grown.size)
+        return tracks
 
     def _check_geometry(self, tracks: "_Tracks") -> "_Tracks":
         """Steps 3 and 3b: P3P-RANSAC against the previous triangulation, then the drift check."""
