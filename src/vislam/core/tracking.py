@@ -89,8 +89,11 @@ class TrackerOptions:
     #: ... and not in a band of this fraction of the width at the left and right edges, where
     #: forward motion takes features out of view within a frame or two (0 = detect up to border_px).
     side_band_fraction: float = 0.15
-    #: KLT window side (px, odd).
+    #: KLT window side (px, odd) of the frame-to-frame tracking (started at the predicted position).
     klt_window_px: int = 11
+    #: ... and of the stereo match of a new corner (no disparity guess: a larger window, fewer false
+    #: matches on weak real texture).
+    stereo_window_px: int = 21
     #: Refinement of every KLT match on the full image with this smaller window (px, odd; 0 =
     #: off): a large window finds the match, a small one centred on the corner places it, so
     #: the flow elsewhere in the large window (perspective, divergence) does not shift it.
@@ -157,8 +160,9 @@ class TrackerOptions:
                         or not math.isfinite(value) or value < 0:
                     raise ConfigError(f"{f.name} must be a finite number >= 0, got {value!r}")
                 object.__setattr__(self, f.name, float(value))
-        if self.klt_window_px % 2 == 0 or self.klt_window_px < 3:
-            raise ConfigError(f"klt_window_px must be odd and >= 3, got {self.klt_window_px}")
+        for name in ("klt_window_px", "stereo_window_px"):
+            if getattr(self, name) % 2 == 0 or getattr(self, name) < 3:
+                raise ConfigError(f"{name} must be odd and >= 3, got {getattr(self, name)}")
         if self.refine_window_px and (self.refine_window_px % 2 == 0 or self.refine_window_px < 3):
             raise ConfigError(f"refine_window_px must be 0 (off) or odd and >= 3, got {self.refine_window_px}")
         if not 0 < self.quality_level < 1:
@@ -302,10 +306,10 @@ class StereoTracker:
                           o.klt_epsilon_px)
 
     # ------------------------------------------------------------------ helpers
-    def _klt(self, pyr_a, pyr_b, pts_a, guess_b, levels):
+    def _klt(self, pyr_a, pyr_b, pts_a, guess_b, levels, window=None):
         """Forward KLT a -> b from ``guess_b``, then back; (pts_b, ok, fb_error)."""
         cv2 = self._cv2
-        w = self.options.klt_window_px
+        w = window or self.options.klt_window_px
         n = pts_a.shape[0]
         if n == 0:
             return np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0)
@@ -333,12 +337,12 @@ class StereoTracker:
         m = float(max(2, self.options.klt_window_px // 2 // 2))
         return (pts[:, 0] >= m) & (pts[:, 0] <= w - 1 - m) & (pts[:, 1] >= m) & (pts[:, 1] <= h - 1 - m)
 
-    def _stereo(self, pyr_l, pyr_r, left, disparity_guess, levels):
+    def _stereo(self, pyr_l, pyr_r, left, disparity_guess, levels, window=None):
         """Stereo match of left pixels (n, 2); (pixels (n, 4), ok)."""
         o = self.options
         guess = left.copy()
         guess[:, 0] -= disparity_guess
-        right, ok, fb = self._klt(pyr_l, pyr_r, left, guess, levels)
+        right, ok, fb = self._klt(pyr_l, pyr_r, left, guess, levels, window)
         if left.shape[0] == 0:
             return np.zeros((0, 4)), ok
         disparity = left[:, 0] - right[:, 0]
@@ -698,7 +702,8 @@ class StereoTracker:
             st.rejected_stereo_new += int(np.count_nonzero(~contrast))
             new, tpl = new[contrast], tpl[contrast]
         tried = new
-        stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels)
+        stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels,
+                                   o.stereo_window_px)
         st.rejected_stereo_new += int(np.count_nonzero(~sok))
         stereo, tpl = stereo[sok], tpl[sok]
         if o.min_expected_frames > 0 and self._motion_ok:
