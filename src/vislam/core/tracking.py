@@ -7,36 +7,43 @@ rows of :class:`vislam.core.sequence.StereoObservations`. It keeps only the prev
 frame (its left image, its live tracks and their triangulation), so its memory does
 not depend on the length of the recording.
 
-Each frame:
+Each frame (:meth:`StereoTracker.process`, one method per step):
 
-1. **Temporal tracking** — pyramidal Lucas-Kanade (KLT) of the live tracks from the
-   previous left image into the new one, then back; a track whose round trip misses its
-   start by more than ``fb_threshold_px`` is lost (forward-backward check).
-2. **Stereo matching** — KLT from the left image into the right one, started at the
-   track's previous disparity (new corners: at zero, with a deeper pyramid), then back.
-   A match is kept only on the epipolar line of the rectified pair (``|vR - vL| <=
-   max_row_difference_px``), with a disparity ``uL - uR`` in
-   ``[min_disparity_px, max_disparity_px]`` and a round trip within ``fb_threshold_px``.
-   A track without a stereo match ends (tracks are contiguous, as the dataset format wants).
+1. **Temporal tracking** (``_track_temporal``) — pyramidal Lucas-Kanade (KLT) of the live
+   tracks from the previous left image into the new one, started where the last camera
+   motion predicts them, then back; a track whose round trip misses its start by more than
+   ``fb_threshold_px`` is lost (forward-backward check).
+2. **Stereo matching** (``_track_stereo``) — the right position of a tracked point is its
+   new left position moved by the disparity the last motion predicts, refined by the affine
+   step (2b; ``stereo_tracked_levels`` > 0: a KLT first). A match is kept only on the
+   epipolar line of the rectified pair (``|vR - vL| <= max_row_difference_px``), with a
+   disparity ``uL - uR`` in ``[min_disparity_px, max_disparity_px]``. A track that fails a
+   check ends (tracks are contiguous: ids are never reused).
 2b. **Affine refinement** — each track keeps the (2r+1)² template of its first left
-   appearance; every new left and right position is refined by Gauss-Newton over an
-   affine warp of that template (plus gain and bias) into the image, so the position
+   appearance; every new left and right position is refined by inverse-compositional
+   Gauss-Newton over an affine warp of that template (plus gain and bias), so the position
    follows the surface point the track started on rather than drifting with the
-   translation-only KLT (whose estimate is pulled by the flow elsewhere in its window
-   under perspective and scale change). A track whose warp leaves a residual above
-   ``affine_max_residual`` of the template's contrast ends.
-3. **Geometric check** — the previous frame's stereo triangulation of the tracked
-   points against their new left pixels: P3P in RANSAC (``cv2.solvePnPRansac``) gives the
-   camera motion; a track whose predicted left *or* right pixel is more than
-   ``ransac_threshold_px`` from its measurement is rejected (catches wrong temporal and
-   wrong stereo matches alike, and points on moving objects).
+   translation-only KLT. The template's steepest-descent images are computed once per
+   track (no image gradients). A track whose warp leaves a residual above
+   ``affine_max_residual`` of the template's contrast ends; one whose warp has scaled the
+   template by ``affine_reanchor_scale`` takes its current appearance as the template.
+3. **Geometric check** (``_check_geometry``) — the previous frame's stereo triangulation of
+   the tracked points against their new left pixels: P3P in RANSAC (``cv2.solvePnPRansac``)
+   gives the camera motion; a track whose predicted left *or* right pixel is more than
+   ``ransac_threshold_px`` from its measurement is rejected.
 3b. **Drift check** — the camera poses chained from the frame-to-frame P3P motions carry
    each track's first stereo triangulation to the current frame; a track whose left or right
    position is more than ``drift_threshold_px`` from it ends.
-4. **Detection** — Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) at least
-   ``min_distance_px`` from every live track, spread over a ``grid_cols x grid_rows``
-   grid: each cell is filled up to its share of ``target_features``. New corners get new
-   ids (0, 1, 2, ... in order of detection; ids are never reused).
+4. **Detection** (``_new_tracks``) — Shi-Tomasi corners (``cv2.goodFeaturesToTrack``, on each
+   cell alone) at least ``min_distance_px`` from every live track, in the cells of a
+   ``grid_cols x grid_rows`` grid below their share of ``target_features``; matched into the
+   right image by KLT from zero disparity (``stereo_window_px``, ``stereo_levels``) and the
+   affine step. A corner whose stereo point leaves the view under the last motion within
+   ``min_expected_frames`` is not started; a cell whose try started few tracks rests
+   (``detect_retry_frames``). New corners get new ids (0, 1, 2, ... in order of detection).
+
+Every track end is counted under its check with the track's length
+(:class:`TrackerStatistics`, ``track_ends``).
 
 Frames: pixels (u right, v down) of the rectified left/right images; 3-D points in the
 left camera frame of the previous image (x right, y down, z forward).
