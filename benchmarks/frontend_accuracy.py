@@ -13,7 +13,8 @@ For each rendered date folder (``vislam simulate --images``):
 * ``vislam track DIR/sim_drive_*_sync --out DIR/tracks.npz``; every tracked observation is
   graded against the true geometry (``scene_planes.npz``, true poses from
   ``groundtruth.tum``; :func:`vislam.core.render.track_reprojection_errors`): median error,
-  share beyond 3 px, tracked landmarks per frame, median track length;
+  share beyond 3 px, tracked landmarks per frame, median track length (frames in which one
+  id is observed; checked to be consecutive: no track has a gap) and how the tracks ended;
 * ``vislam run DIR/sim_drive_*_sync --mode slam --gt DIR/groundtruth.kitti`` (the folder
   itself, as a user runs it) and ``vislam run DIR/sequence.npz --mode slam --gt ...``
   (the simulator's own observations of the same drive): ATE of each and their ratio;
@@ -52,6 +53,17 @@ def _ate(run_dir: Path) -> float:
     return json.loads((run_dir / "summary.json").read_text())["evaluation"]["ape_rmse_m"]
 
 
+def _consecutive(obs) -> bool:
+    """Whether every track's length (frames observed) equals its span (last - first + 1 frames):
+    then the median track length counts consecutive frames of one id."""
+    ids, frames = obs.landmark_ids, obs.frame_index
+    first = np.full(obs.n_landmarks, np.iinfo(np.int64).max)
+    last = np.full(obs.n_landmarks, -1)
+    np.minimum.at(first, ids, frames)
+    np.maximum.at(last, ids, frames)
+    return bool(np.array_equal(last - first + 1, obs.track_lengths()))
+
+
 def rendered(folder: Path, noise: tuple[float, float] | None) -> dict:
     from vislam.core.render import camera_poses, track_reprojection_errors
     from vislam.tools.dataset_io import load_sequence
@@ -73,7 +85,9 @@ def rendered(folder: Path, noise: tuple[float, float] | None) -> dict:
            "beyond_3px_share": float(np.mean(finite > 3)),
            "landmarks_per_frame_mean": float(seq.observations.counts_per_frame().mean()),
            "track_length_median": float(np.median(seq.observations.track_lengths())),
-           "statistics": json.loads((folder / "tracks.tracking.json").read_text())["rejections"]}
+           "track_length_is_consecutive": _consecutive(seq.observations),
+           "statistics": json.loads((folder / "tracks.tracking.json").read_text())["rejections"],
+           "track_ends": json.loads((folder / "tracks.tracking.json").read_text()).get("track_ends")}
     gt = folder / "groundtruth.kitti"
     # the filter with its defaults (the command as written) and told the drive's IMU noise (--told)
     told = ["--velocity-noise", str(noise[0]), "--angular-noise", str(noise[1])] if noise else []

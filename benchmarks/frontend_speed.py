@@ -5,14 +5,16 @@ Usage::
 
     PYTHONPATH=src python benchmarks/frontend_speed.py [--source FOLDER] [--frames 200] [--out FILE.json]
 
-On one core (``cv2.setNumThreads(1)`` and BLAS/OpenMP limited to one thread) it tracks the
+On one core (the process pinned to one CPU with ``os.sched_setaffinity``, like ``taskset -c``;
+``cv2.setNumThreads(1)``; BLAS/OpenMP limited to one thread) it tracks the
 rectified 1242x375 grey pairs of a KITTI raw drive folder — by default one rendered by
 ``vislam simulate --images --frames 250 --seed 0`` into a temporary folder (the rendering
 is not timed). It reports:
 
 * frames per second of :meth:`StereoTracker.process` alone (images already in memory) and
   of the whole loop with PNG decoding (``StereoSource.read_pair``), per-frame median and
-  p95 (ms), and the share of the time in each step (cProfile of a separate pass);
+  p95 (ms), the CPU time per frame of each of the tracker's named steps and of the
+  primitives inside them (a separate pass), and cProfile's top functions;
 * memory: the peak of Python/numpy allocations (``tracemalloc``) while tracking the first
   ``N/4`` and all ``N`` frames, minus what the kept observations themselves take
   (``n_observations x 40`` bytes): the tracker's working memory, which must not grow
@@ -51,6 +53,39 @@ def _source(folder: str | None, frames: int):
     return open_stereo_source(next(Path(tmp.name).glob("sim_drive_*_sync"))), tmp
 
 
+#: The tracker's named steps (StereoTracker.process calls them in this order) and the primitives
+#: inside them, timed per frame by :func:`_step_times`.
+STEPS = ("_frame", "_track_temporal", "_track_stereo", "_check_geometry", "_new_tracks", "_commit")
+PRIMITIVES = ("_klt", "_affine", "_detect", "_templates", "_geometric_inliers", "_expected_frames")
+
+
+def _step_times(source, n, pairs) -> dict:
+    """CPU ms per frame in each step and primitive (time.process_time around each call)."""
+    from vislam.core.tracking import StereoTracker
+
+    tracker = StereoTracker(source.K, source.baseline_m)
+    spent = {name: 0.0 for name in STEPS + PRIMITIVES}
+
+    def timed(name, method):
+        def call(*args, **kwargs):
+            t0 = time.process_time()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                spent[name] += time.process_time() - t0
+        return call
+
+    for name in STEPS + PRIMITIVES:
+        setattr(tracker, name, timed(name, getattr(tracker, name)))
+    t0 = time.process_time()
+    for t in range(n):
+        tracker.process(*pairs[t])
+    total = time.process_time() - t0
+    out = {name: 1e3 * v / n for name, v in spent.items()}
+    out["process_total"] = 1e3 * total / n
+    return out
+
+
 def _track(source, n, pairs=None):
     from vislam.core.tracking import StereoTracker
 
@@ -74,6 +109,8 @@ def main() -> int:
     parser.add_argument("--out", default="benchmarks/results/frontend_speed.json")
     args = parser.parse_args()
     cv2.setNumThreads(1)
+    if hasattr(os, "sched_setaffinity"):  # one core: like taskset -c N
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     try:
         from threadpoolctl import threadpool_limits
 
@@ -105,6 +142,7 @@ def main() -> int:
     _track(source, min(n, 60), pairs)
     prof.disable()
     stats = pstats.Stats(prof)
+    steps = _step_times(source, n, pairs)
     result = {
         "machine": {"nproc": os.cpu_count(), "python": platform.python_version(), "opencv": cv2.__version__,
                     "loadavg": os.getloadavg(), "cpu": platform.processor()},
@@ -117,6 +155,7 @@ def main() -> int:
         "profile_top_tottime_s": [(name, round(t, 3)) for t, name in
                                   sorted(((v[2], f"{k[2]} ({Path(k[0]).name}:{k[1]})")
                                           for k, v in stats.stats.items()), reverse=True)[:10]],
+        "step_cpu_ms_per_frame": {k: round(v, 2) for k, v in steps.items()},
         "target_fps": 30.0,
     }
     proc, png = result["process_only"], result["with_png_decoding"]
@@ -128,6 +167,7 @@ def main() -> int:
         print(f"memory after {m} frames: peak {v['peak_mib']:.1f} MiB = observations {v['observations_mib']:.2f} "
               f"MiB + working {v['working_mib']:.1f} MiB")
     print(f"target >= 30 fps: {'HOLDS' if proc['fps'] >= 30 else 'MISSED'}")
+    print("CPU ms per frame: " + ", ".join(f"{k.strip('_')} {v:.1f}" for k, v in steps.items()))
     for name, t in result["profile_top_tottime_s"][:6]:
         print(f"  {t:7.3f} s  {name}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

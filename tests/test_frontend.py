@@ -142,6 +142,30 @@ def test_tracker_on_shifted_texture_recovers_disparity_and_motion(tmp_path):
     assert np.all(np.abs(moved - [-7.5, -2.5]) < 0.1)
 
 
+def test_tracker_counts_every_track_end_with_its_length(tmp_path):
+    # the texture slides 9 px per frame to the left: corners leave through the left edge
+    source = open_stereo_source(_plain_folder(tmp_path / "plain", n=10, shift=(9.0, 0.0)))
+    tracker = StereoTracker(source.K, source.baseline_m, TrackerOptions(target_features=80, grid_cols=4,
+                                                                        grid_rows=2, side_band_fraction=0.0))
+    frames = [tracker.process(*source.read_pair(t)) for t in range(source.n_frames)]
+    stats = tracker.stats.to_dict()
+    ends = stats["track_ends"]
+    assert sum(e["count"] for e in ends.values()) > 0
+    # every track started either ended (counted under one reason) or is alive in the last frame
+    assert sum(e["count"] for e in ends.values()) + frames[-1][0].size == tracker._next_id
+    for reason, e in ends.items():
+        assert e["count"] == stats["rejections"][reason]
+    # lengths: an id seen in frames a..b that ended in frame b+1 lasted b-a+1 frames
+    seen = {}
+    for t, (ids, _) in enumerate(frames):
+        for i in ids:
+            seen.setdefault(int(i), []).append(t)
+    assert all(v == list(range(v[0], v[-1] + 1)) for v in seen.values())  # no gaps
+    ended = [len(v) for v in seen.values() if v[-1] < len(frames) - 1]
+    hist = sum(np.asarray(h) for h in tracker.stats.end_lengths.values())
+    np.testing.assert_array_equal(hist, np.bincount(ended, minlength=hist.size))
+
+
 def test_vislam_track_writes_a_recording_and_statistics(tmp_path, capsys):
     from vislam.tools.dataset_io import load_sequence
 
@@ -170,6 +194,8 @@ def test_tracker_options_from_file_and_errors(tmp_path):
         tracker_options_from_args(cfg)
     with pytest.raises(ConfigError, match="--features must be >= 1"):
         tracker_options_from_args(None, {"target_features": 0})
+    with pytest.raises(ConfigError, match="stereo_window_px must be odd"):
+        TrackerOptions(stereo_window_px=20)
 
 
 def _bad_folders(tmp_path):

@@ -84,6 +84,8 @@ def format_stats(stats: dict, paths) -> str:
         f"per frame:     mean {tpf['mean']:.1f}, min {tpf['min']}, max {tpf['max']}",
         f"rejected:      forward-backward {rej['forward_backward']}, left image {rej['left_image']}, stereo "
         f"{rej['stereo_tracked']} tracked + {rej['stereo_new']} new, geometric {rej['geometric']}",
+        "tracks ended:  " + (", ".join(f"{k.replace('_', ' ')} {v['count']} (median {v['median_length']} frames)"
+                                       for k, v in stats.get("track_ends", {}).items()) or "none"),
         f"velocities:    {stats['velocities']}",
         "wrote:",
     ]

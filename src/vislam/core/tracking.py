@@ -7,36 +7,43 @@ rows of :class:`vislam.core.sequence.StereoObservations`. It keeps only the prev
 frame (its left image, its live tracks and their triangulation), so its memory does
 not depend on the length of the recording.
 
-Each frame:
+Each frame (:meth:`StereoTracker.process`, one method per step):
 
-1. **Temporal tracking** — pyramidal Lucas-Kanade (KLT) of the live tracks from the
-   previous left image into the new one, then back; a track whose round trip misses its
-   start by more than ``fb_threshold_px`` is lost (forward-backward check).
-2. **Stereo matching** — KLT from the left image into the right one, started at the
-   track's previous disparity (new corners: at zero, with a deeper pyramid), then back.
-   A match is kept only on the epipolar line of the rectified pair (``|vR - vL| <=
-   max_row_difference_px``), with a disparity ``uL - uR`` in
-   ``[min_disparity_px, max_disparity_px]`` and a round trip within ``fb_threshold_px``.
-   A track without a stereo match ends (tracks are contiguous, as the dataset format wants).
+1. **Temporal tracking** (``_track_temporal``) — pyramidal Lucas-Kanade (KLT) of the live
+   tracks from the previous left image into the new one, started where the last camera
+   motion predicts them, then back; a track whose round trip misses its start by more than
+   ``fb_threshold_px`` is lost (forward-backward check).
+2. **Stereo matching** (``_track_stereo``) — the right position of a tracked point is its
+   new left position moved by the disparity the last motion predicts, refined by the affine
+   step (2b; ``stereo_tracked_levels`` > 0: a KLT first). A match is kept only on the
+   epipolar line of the rectified pair (``|vR - vL| <= max_row_difference_px``), with a
+   disparity ``uL - uR`` in ``[min_disparity_px, max_disparity_px]``. A track that fails a
+   check ends (tracks are contiguous: ids are never reused).
 2b. **Affine refinement** — each track keeps the (2r+1)² template of its first left
-   appearance; every new left and right position is refined by Gauss-Newton over an
-   affine warp of that template (plus gain and bias) into the image, so the position
+   appearance; every new left and right position is refined by inverse-compositional
+   Gauss-Newton over an affine warp of that template (plus gain and bias), so the position
    follows the surface point the track started on rather than drifting with the
-   translation-only KLT (whose estimate is pulled by the flow elsewhere in its window
-   under perspective and scale change). A track whose warp leaves a residual above
-   ``affine_max_residual`` of the template's contrast ends.
-3. **Geometric check** — the previous frame's stereo triangulation of the tracked
-   points against their new left pixels: P3P in RANSAC (``cv2.solvePnPRansac``) gives the
-   camera motion; a track whose predicted left *or* right pixel is more than
-   ``ransac_threshold_px`` from its measurement is rejected (catches wrong temporal and
-   wrong stereo matches alike, and points on moving objects).
+   translation-only KLT. The template's steepest-descent images are computed once per
+   track (no image gradients). A track whose warp leaves a residual above
+   ``affine_max_residual`` of the template's contrast ends; one whose warp has scaled the
+   template by ``affine_reanchor_scale`` takes its current appearance as the template.
+3. **Geometric check** (``_check_geometry``) — the previous frame's stereo triangulation of
+   the tracked points against their new left pixels: P3P in RANSAC (``cv2.solvePnPRansac``)
+   gives the camera motion; a track whose predicted left *or* right pixel is more than
+   ``ransac_threshold_px`` from its measurement is rejected.
 3b. **Drift check** — the camera poses chained from the frame-to-frame P3P motions carry
    each track's first stereo triangulation to the current frame; a track whose left or right
    position is more than ``drift_threshold_px`` from it ends.
-4. **Detection** — Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) at least
-   ``min_distance_px`` from every live track, spread over a ``grid_cols x grid_rows``
-   grid: each cell is filled up to its share of ``target_features``. New corners get new
-   ids (0, 1, 2, ... in order of detection; ids are never reused).
+4. **Detection** (``_new_tracks``) — Shi-Tomasi corners (``cv2.goodFeaturesToTrack``, on each
+   cell alone) at least ``min_distance_px`` from every live track, in the cells of a
+   ``grid_cols x grid_rows`` grid below their share of ``target_features``; matched into the
+   right image by KLT from zero disparity (``stereo_window_px``, ``stereo_levels``) and the
+   affine step. A corner whose stereo point leaves the view under the last motion within
+   ``min_expected_frames`` is not started; a cell whose try started few tracks rests
+   (``detect_retry_frames``). New corners get new ids (0, 1, 2, ... in order of detection).
+
+Every track end is counted under its check with the track's length
+(:class:`TrackerStatistics`, ``track_ends``).
 
 Frames: pixels (u right, v down) of the rectified left/right images; 3-D points in the
 left camera frame of the previous image (x right, y down, z forward).
@@ -71,10 +78,13 @@ class TrackerOptions:
     """Options of :class:`StereoTracker` (units in the names; defaults documented inline)."""
 
     #: Number of live tracks the detector tops up to, spread over the grid.
-    target_features: int = 300
+    target_features: int = 450
     #: Detection grid: columns x rows of cells, each filled to its share of target_features.
     grid_cols: int = 10
     grid_rows: int = 4
+    #: A cell whose last detection started fewer than a quarter of its corners as tracks is not
+    #: tried again for this many frames (doubled after each further idle try, at most 32).
+    detect_retry_frames: int = 4
     #: Shi-Tomasi quality level (fraction of the best corner's score).
     quality_level: float = 0.005
     #: Smallest distance between two corners / a new corner and a live track (px).
@@ -86,8 +96,11 @@ class TrackerOptions:
     #: ... and not in a band of this fraction of the width at the left and right edges, where
     #: forward motion takes features out of view within a frame or two (0 = detect up to border_px).
     side_band_fraction: float = 0.15
-    #: KLT window side (px, odd).
-    klt_window_px: int = 21
+    #: KLT window side (px, odd) of the frame-to-frame tracking (started at the predicted position).
+    klt_window_px: int = 11
+    #: ... and of the stereo match of a new corner (no disparity guess: a larger window, fewer false
+    #: matches on weak real texture).
+    stereo_window_px: int = 21
     #: Refinement of every KLT match on the full image with this smaller window (px, odd; 0 =
     #: off): a large window finds the match, a small one centred on the corner places it, so
     #: the flow elsewhere in the large window (perspective, divergence) does not shift it.
@@ -97,15 +110,23 @@ class TrackerOptions:
     #: relative to the template's contrast (RMS / standard deviation).
     affine_radius_px: int = 6
     affine_max_residual: float = 0.4
-    #: Gauss-Newton iterations of the affine refinement.
-    affine_iterations: int = 12
+    #: A track whose left warp has scaled its template by more than this (linear, area = square)
+    #: takes its current appearance as the new template (0 = never: tracks end when the warp's
+    #: determinant leaves (0.2, 5)). Approaching points grow and show finer texture than at first.
+    affine_reanchor_scale: float = 1.5
+    #: Gauss-Newton iterations of the affine refinement, at most; a track stops when its step is
+    #: below affine_step_px.
+    affine_iterations: int = 5
+    affine_step_px: float = 0.01
     #: KLT pyramid levels above the full image (temporal tracking).
-    klt_levels: int = 3
+    klt_levels: int = 2
+    #: KLT pyramid levels of the stereo match of a tracked point (started at its last disparity).
+    stereo_tracked_levels: int = 0
     #: KLT pyramid levels of the stereo match of a new corner (no disparity guess yet).
     stereo_levels: int = 4
     #: KLT iterations per level and the convergence threshold (px).
-    klt_iterations: int = 30
-    klt_epsilon_px: float = 0.01
+    klt_iterations: int = 10
+    klt_epsilon_px: float = 0.03
     #: Forward-backward check: largest round-trip error of a KLT match (px).
     fb_threshold_px: float = 1.0
     #: Epipolar constraint of the rectified pair: largest |vR - vL| (px).
@@ -123,6 +144,11 @@ class TrackerOptions:
     ransac_iterations: int = 100
     #: Fewest tracked points for the geometric check (fewer: the check is skipped).
     ransac_min_points: int = 12
+    #: A new corner is started only if its stereo point, carried by the last frame-to-frame motion
+    #: (constant velocity), stays in view for at least this many frames (0 = off; before the first
+    #: motion is known every corner is started). On a forward-moving car the corners at the image
+    #: sides leave within a few frames; the budget goes to those that stay.
+    min_expected_frames: int = 8
     #: Tracks seen in fewer frames are left out of the output (see :func:`finish_tracks`).
     min_track_length: int = 3
 
@@ -133,15 +159,17 @@ class TrackerOptions:
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                     raise ConfigError(f"{f.name} must be an integer, got {value!r}")
                 object.__setattr__(self, f.name, int(value))
-                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px") else 1):
+                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px", "stereo_tracked_levels", "detect_retry_frames",
+                                             "min_expected_frames") else 1):
                     raise ConfigError(f"{f.name} must be >= 1, got {value!r}")
             else:
                 if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
                         or not math.isfinite(value) or value < 0:
                     raise ConfigError(f"{f.name} must be a finite number >= 0, got {value!r}")
                 object.__setattr__(self, f.name, float(value))
-        if self.klt_window_px % 2 == 0 or self.klt_window_px < 3:
-            raise ConfigError(f"klt_window_px must be odd and >= 3, got {self.klt_window_px}")
+        for name in ("klt_window_px", "stereo_window_px"):
+            if getattr(self, name) % 2 == 0 or getattr(self, name) < 3:
+                raise ConfigError(f"{name} must be odd and >= 3, got {getattr(self, name)}")
         if self.refine_window_px and (self.refine_window_px % 2 == 0 or self.refine_window_px < 3):
             raise ConfigError(f"refine_window_px must be 0 (off) or odd and >= 3, got {self.refine_window_px}")
         if not 0 < self.quality_level < 1:
@@ -191,6 +219,22 @@ class TrackerStatistics:
     rejected_affine: int = 0  # the affine refinement against the first appearance failed
     rejected_drift: int = 0  # drifted from the track's first triangulation
     left_image: int = 0  # left the image
+    reanchored: int = 0  # templates replaced by the current appearance (affine_reanchor_scale)
+    not_started: int = 0  # new corners expected to leave the view too soon (min_expected_frames)
+    #: per end reason (the keys of "rejections" but stereo_new): how many frames the ended tracks lasted,
+    #: as a histogram (index = length, the last bin holds everything longer)
+    end_lengths: dict = field(default_factory=dict)
+
+    _REASONS = {"forward_backward": "lost_temporal", "left_image": "left_image",
+                "stereo_tracked": "rejected_stereo_tracked", "appearance": "rejected_affine",
+                "geometric": "rejected_geometric", "drift": "rejected_drift"}
+    _MAX_LENGTH = 100
+
+    def count_end(self, reason: str, lengths: np.ndarray) -> None:
+        """Tracks that ended for ``reason`` after ``lengths`` frames."""
+        setattr(self, self._REASONS[reason], getattr(self, self._REASONS[reason]) + int(lengths.size))
+        hist = np.bincount(np.minimum(lengths, self._MAX_LENGTH), minlength=self._MAX_LENGTH + 1)
+        self.end_lengths[reason] = self.end_lengths.get(reason, 0) + hist
 
     def to_dict(self, track_lengths: np.ndarray | None = None) -> dict[str, Any]:
         counts = np.asarray(self.tracks_per_frame, dtype=float)
@@ -203,6 +247,8 @@ class TrackerStatistics:
                 "max": int(counts.max()) if counts.size else 0,
             },
             "detected": self.detected,
+            "not_started": self.not_started,
+            "reanchored": self.reanchored,
             "rejections": {
                 "forward_backward": self.lost_temporal,
                 "left_image": self.left_image,
@@ -213,6 +259,12 @@ class TrackerStatistics:
                 "drift": self.rejected_drift,
             },
         }
+        out["track_ends"] = {}
+        for reason, hist in sorted(self.end_lengths.items()):
+            cum = np.cumsum(hist)
+            out["track_ends"][reason] = {"count": int(cum[-1]),
+                                         "median_length": int(np.searchsorted(cum, cum[-1] / 2.0)),
+                                         "ended_within_4_frames": int(cum[4])}
         if track_lengths is not None:
             lengths = np.asarray(track_lengths)
             out["tracks"] = int(lengths.size)
@@ -241,29 +293,30 @@ class StereoTracker:
         self.baseline_m = float(baseline_m)
         self.stats = TrackerStatistics()
         self._next_id = 0
-        self._prev_pyramid = None
-        self._ids = np.zeros(0, dtype=np.int64)
-        self._pixels = np.zeros((0, 4))  # [uL, vL, uR, vR] of the live tracks in the previous frame
+        self._prev_left = None  # the previous left image
         self._shape = None
         self._motion = None  # (R, t) of the last frame-to-frame camera motion, q_new = R q_old + t
         self._motion_ok = False  # whether the last frame's P3P check found the motion
         self._cam_T_ref = np.eye(4)  # chained motions: current camera from the first frame's camera
-        self._p_in_ref = np.zeros((0, 3))  # per track: first triangulation in the first frame's camera (NaN: none)
         r = self.options.affine_radius_px
         g = np.arange(-r, r + 1, dtype=np.float32)
         gx, gy = np.meshgrid(g, g)
         self._offsets = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (m, 2)
-        self._templates = np.zeros((0, self._offsets.shape[0]), np.float32)
-        self._A = np.zeros((0, 2, 2, 2))  # per track: left and right warps
+        g = np.arange(-r - 1, r + 2, dtype=np.float32)
+        gx, gy = np.meshgrid(g, g)
+        self._offsets_ext = np.stack([gx.ravel(), gy.ravel()], axis=1)  # one pixel more, for dT/dx
+        self._live = _Tracks.empty(self._offsets.shape[0])
+        self._cell_rest = None  # per detection cell: frames until it is tried again
+        self._cells_tried = np.zeros(0, np.int64)
         o = self.options
         self._criteria = (self._cv2.TERM_CRITERIA_COUNT | self._cv2.TERM_CRITERIA_EPS, o.klt_iterations,
                           o.klt_epsilon_px)
 
     # ------------------------------------------------------------------ helpers
-    def _klt(self, pyr_a, pyr_b, pts_a, guess_b, levels):
+    def _klt(self, pyr_a, pyr_b, pts_a, guess_b, levels, window=None):
         """Forward KLT a -> b from ``guess_b``, then back; (pts_b, ok, fb_error)."""
         cv2 = self._cv2
-        w = self.options.klt_window_px
+        w = window or self.options.klt_window_px
         n = pts_a.shape[0]
         if n == 0:
             return np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0)
@@ -291,12 +344,12 @@ class StereoTracker:
         m = float(max(2, self.options.klt_window_px // 2 // 2))
         return (pts[:, 0] >= m) & (pts[:, 0] <= w - 1 - m) & (pts[:, 1] >= m) & (pts[:, 1] <= h - 1 - m)
 
-    def _stereo(self, pyr_l, pyr_r, left, disparity_guess, levels):
+    def _stereo(self, pyr_l, pyr_r, left, disparity_guess, levels, window=None):
         """Stereo match of left pixels (n, 2); (pixels (n, 4), ok)."""
         o = self.options
         guess = left.copy()
         guess[:, 0] -= disparity_guess
-        right, ok, fb = self._klt(pyr_l, pyr_r, left, guess, levels)
+        right, ok, fb = self._klt(pyr_l, pyr_r, left, guess, levels, window)
         if left.shape[0] == 0:
             return np.zeros((0, 4)), ok
         disparity = left[:, 0] - right[:, 0]
@@ -343,55 +396,75 @@ class StereoTracker:
         err = np.maximum(np.hypot(uL - pixels[:, 0], v - pixels[:, 1]), np.hypot(uR - pixels[:, 2], v - pixels[:, 3]))
         return good & (err <= o.ransac_threshold_px)
 
-    def _sample(self, image, pts, A):
-        """(n, m[, channels]) values of ``image`` at ``pts + A @ offsets`` (bilinear)."""
+    def _sample(self, image, pts, A, offsets=None):
+        """(n, m) values of the float32 ``image`` at ``pts + A @ offsets`` (bilinear)."""
         cv2 = self._cv2
+        offsets = self._offsets if offsets is None else offsets
         if pts.shape[0] == 0:
-            return np.zeros((0, self._offsets.shape[0]) + image.shape[2:], np.float32)
-        ox, oy = self._offsets[None, :, 0], self._offsets[None, :, 1]
-        mx = (pts[:, 0:1] + A[:, 0, 0:1] * ox + A[:, 0, 1:2] * oy).astype(np.float32)
-        my = (pts[:, 1:2] + A[:, 1, 0:1] * ox + A[:, 1, 1:2] * oy).astype(np.float32)
+            return np.zeros((0, offsets.shape[0]), np.float32)
+        ox, oy = offsets[None, :, 0], offsets[None, :, 1]
+        pts, A = pts.astype(np.float32), A.astype(np.float32)
+        mx = pts[:, 0:1] + A[:, 0, 0:1] * ox + A[:, 0, 1:2] * oy
+        my = pts[:, 1:2] + A[:, 1, 0:1] * ox + A[:, 1, 1:2] * oy
         return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
-    def _affine(self, images, templates, pts, A):
-        """Gauss-Newton of ``image(pts + A x) = g T(x) + c`` over (pts, A, g, c) per track.
+    def _templates(self, image, pts):
+        """(n, m, 7) float32 per new track: its (2r+1)^2 patch T of ``image`` at ``pts`` and the
+        patch's steepest-descent images dT/dp of the six affine parameters (central differences)."""
+        r = self.options.affine_radius_px
+        s = 2 * r + 3
+        patch = self._sample(image, pts, np.tile(np.eye(2), (pts.shape[0], 1, 1)), self._offsets_ext)
+        patch = patch.reshape(-1, s, s)
+        T = patch[:, 1:-1, 1:-1].reshape(pts.shape[0], -1)
+        Tx = (0.5 * (patch[:, 1:-1, 2:] - patch[:, 1:-1, :-2])).reshape(pts.shape[0], -1)
+        Ty = (0.5 * (patch[:, 2:, 1:-1] - patch[:, :-2, 1:-1])).reshape(pts.shape[0], -1)
+        x, y = self._offsets[None, :, 0], self._offsets[None, :, 1]
+        return np.stack([T, Tx, Ty, Tx * x, Tx * y, Ty * x, Ty * y], axis=-1).astype(np.float32)
 
-        ``images``: (h, w, 3) float32 of the image and its d/du, d/dv. Returns (pts, A, ok)."""
+    def _affine(self, image, templates, pts, A):
+        """Inverse-compositional Gauss-Newton of ``image(pts + A x) = g T(x) + c`` per track.
+
+        The template's steepest-descent images (:meth:`_templates`) and with them the normal
+        matrix are fixed over the iterations, so each iteration samples the float32 ``image``
+        once (no image gradients). Returns (pts, A, ok)."""
         o = self.options
         n = pts.shape[0]
         if n == 0:
             return pts, A, np.zeros(0, bool)
         pts = pts.astype(np.float64).copy()
         A = A.astype(np.float64).copy()
-        gain = np.ones(n)
-        bias = np.zeros(n)
-        x, y = self._offsets[None, :, 0], self._offsets[None, :, 1]
-        T_all = templates.astype(np.float32)
-        active = np.arange(n)  # tracks still moving by more than 1e-3 px per iteration
+        T_all = templates[..., 0]
+        J = np.concatenate([templates[..., 1:], T_all[..., None], np.ones_like(T_all[..., None])], axis=-1)
+        H = np.matmul(J.transpose(0, 2, 1), J).astype(np.float64) + 1e-6 * np.eye(8)
+        try:
+            H_inv = np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            return pts, A, np.zeros(n, bool)
+        gain = np.ones(n, np.float32)
+        bias = np.zeros(n, np.float32)
+        active = np.arange(n)  # tracks still moving by more than affine_step_px per iteration
         for _ in range(o.affine_iterations):
-            T = T_all[active]
-            S = self._sample(images, pts[active], A[active])  # (k, m, 3) float32
-            Ix, Iy = S[..., 1], S[..., 2]
-            r = S[..., 0] - gain[active, None].astype(np.float32) * T - bias[active, None].astype(np.float32)
-            J = np.stack([Ix, Iy, Ix * x, Ix * y, Iy * x, Iy * y, -T, -np.ones_like(T)], axis=-1)  # (k, m, 8)
-            Jt = J.transpose(0, 2, 1)
-            H = (Jt @ J).astype(np.float64) + 1e-6 * np.eye(8)
-            b = (Jt @ r[..., None]).astype(np.float64)
-            try:
-                d = -np.linalg.solve(H, b)[..., 0]
-            except np.linalg.LinAlgError:
-                return pts, A, np.zeros(n, bool)
+            S = self._sample(image, pts[active], A[active])  # (k, m)
+            r = S - gain[active, None] * T_all[active] - bias[active, None]
+            b = np.matmul(r[:, None, :], J[active])  # (k, 1, 8)
+            d = np.matmul(H_inv[active], b.transpose(0, 2, 1).astype(np.float64))[..., 0]
             d = np.where(np.isfinite(d), d, 0.0)
-            pts[active] += d[:, :2]
-            A[active] += d[:, 2:6].reshape(-1, 2, 2)
+            g = np.maximum(gain[active], 0.1)
+            a, b_, c, e = (d[:, 2 + i] / g for i in range(4))  # dA = I + [[a, b], [c, e]]
+            det = (1 + a) * (1 + e) - b_ * c
+            det = np.where(np.abs(det) > 1e-3, det, 1.0)
+            dA_inv = np.stack([1 + e, -b_, -c, 1 + a], axis=1).reshape(-1, 2, 2) / det[:, None, None]
+            A_new = A[active] @ dA_inv  # W(x; p) o W(x; dp)^-1
+            step = -np.einsum("kij,kj->ki", A_new, d[:, :2] / g[:, None])
+            pts[active] += step
+            A[active] = A_new
             gain[active] += d[:, 6]
             bias[active] += d[:, 7]
-            active = active[np.abs(d[:, :2]).max(axis=1) >= 1e-3]
+            active = active[np.abs(step).max(axis=1) >= o.affine_step_px]
             if active.size == 0:
                 break
         T = T_all.astype(np.float64)
-        img = images
-        I = self._sample(img, pts, A)[..., 0].astype(np.float64)
+        I = self._sample(image, pts, A).astype(np.float64)
         rms = np.sqrt(np.mean((I - gain[:, None] * T - bias[:, None]) ** 2, axis=1))
         contrast = T.std(axis=1) + 1e-6
         det = np.linalg.det(A)
@@ -399,16 +472,12 @@ class StereoTracker:
         ok &= np.isfinite(pts).all(axis=1) & self._inside(pts)
         return pts, A, ok
 
-    def _gradients(self, image):
-        cv2 = self._cv2
-        f = image.astype(np.float32)
-        return cv2.merge([f, cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, scale=0.125),
-                          cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)])
-
     def _predict(self, prev):
-        """Predicted left pixels of the live tracks from the last motion (constant velocity)."""
+        """Predicted left pixels (n, 2) and disparities (n,) of the live tracks from the last motion
+        (constant velocity); without one, where they were."""
+        disparity = prev[:, 0] - prev[:, 2]
         if self._motion is None or prev.shape[0] == 0:
-            return prev[:, :2].copy()
+            return prev[:, :2].copy(), disparity
         R, t = self._motion
         q = self._triangulate(prev) @ R.T + t
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
@@ -417,7 +486,7 @@ class StereoTracker:
         pred = np.stack([fx * q[:, 0] / z + cx, fy * q[:, 1] / z + cy], axis=1)
         h, w = self._shape
         good &= (pred[:, 0] > -w) & (pred[:, 0] < 2 * w) & (pred[:, 1] > -h) & (pred[:, 1] < 2 * h)
-        return np.where(good[:, None], pred, prev[:, :2])
+        return np.where(good[:, None], pred, prev[:, :2]), np.where(good, fx * self.baseline_m / z, disparity)
 
     def _stereo_ok(self, stereo):
         o = self.options
@@ -432,6 +501,19 @@ class StereoTracker:
         v = fy * q[:, 1] / z + cy
         return np.stack([fx * q[:, 0] / z + cx, v, fx * (q[:, 0] - self.baseline_m) / z + cx, v], axis=1)
 
+    def _expected_frames(self, stereo, horizon: int) -> np.ndarray:
+        """(n,) frames (up to ``horizon``) the stereo points stay in both images under the last motion."""
+        R, t = self._motion
+        q = self._triangulate(stereo)
+        frames = np.zeros(stereo.shape[0], np.int64)
+        alive = np.ones(stereo.shape[0], bool)
+        for _ in range(horizon):
+            px = self._project(q)
+            alive &= np.isfinite(px).all(axis=1) & self._inside(px[:, :2]) & self._inside(px[:, 2:])
+            frames += alive
+            q = q @ R.T + t
+        return frames
+
     def _drift_ok(self, p_in_ref, pixels):
         """True where the chained first triangulation reprojects within drift_threshold_px."""
         o = self.options
@@ -443,11 +525,34 @@ class StereoTracker:
                          np.hypot(pred[:, 2] - pixels[:, 2], pred[:, 3] - pixels[:, 3]))
         return ~(err > o.drift_threshold_px)  # NaN (no reference point): kept
 
+    def _cell_of(self, p):
+        o = self.options
+        h, w = self._shape
+        cx = np.clip((p[:, 0] / (w / o.grid_cols)).astype(int), 0, o.grid_cols - 1)
+        cy = np.clip((p[:, 1] / (h / o.grid_rows)).astype(int), 0, o.grid_rows - 1)
+        return cy * o.grid_cols + cx
+
     def _detect(self, image, existing):
-        """New corners (n, 2) in the cells below their share, away from ``existing`` (m, 2)."""
+        """New corners (n, 2) in the cells below their share, away from ``existing`` (m, 2).
+
+        Shi-Tomasi runs on each such cell alone (not on the whole image), for up to twice the
+        cell's need (some fail the stereo match or leave too soon); a cell whose last attempt
+        started no track rests for ``detect_retry_frames`` frames (sky, far road)."""
         cv2 = self._cv2
         o = self.options
         h, w = self._shape
+        n_cells = o.grid_cols * o.grid_rows
+        if self._cell_rest is None:
+            self._cell_rest = np.zeros(n_cells, np.int64)
+            self._cell_fails = np.zeros(n_cells, np.int64)  # consecutive idle tries
+        self._cell_rest = np.maximum(self._cell_rest - 1, 0)
+        quota = int(math.ceil(o.target_features / n_cells))
+        have = np.bincount(self._cell_of(existing), minlength=n_cells) if existing.size else np.zeros(n_cells, int)
+        need = np.where(self._cell_rest == 0, np.maximum(quota - have, 0), 0)
+        self._cells_tried, self._need = np.flatnonzero(need), need
+        if need.sum() == 0 or existing.shape[0] >= o.target_features + n_cells:
+            self._cells_tried = np.zeros(0, np.int64)
+            return np.zeros((0, 2))
         mask = np.zeros((h, w), np.uint8)
         bd = o.border_px
         side = max(bd, int(round(o.side_band_fraction * w)))
@@ -455,32 +560,42 @@ class StereoTracker:
         r = int(math.ceil(o.min_distance_px))
         for x, y in np.round(existing).astype(int):
             cv2.circle(mask, (int(x), int(y)), r, 0, -1)
-        cell_w, cell_h = w / o.grid_cols, h / o.grid_rows
-        n_cells = o.grid_cols * o.grid_rows
-        quota = int(math.ceil(o.target_features / n_cells))
+        out = []
+        for c in self._cells_tried:
+            x0, x1 = int(c % o.grid_cols * w / o.grid_cols), int((c % o.grid_cols + 1) * w / o.grid_cols)
+            y0, y1 = int(c // o.grid_cols * h / o.grid_rows), int((c // o.grid_cols + 1) * h / o.grid_rows)
+            if not mask[y0:y1, x0:x1].any():
+                continue
+            corners = cv2.goodFeaturesToTrack(image[y0:y1, x0:x1], maxCorners=2 * int(need[c]),
+                                              qualityLevel=o.quality_level, minDistance=o.min_distance_px,
+                                              mask=np.ascontiguousarray(mask[y0:y1, x0:x1]),
+                                              blockSize=o.block_size_px)
+            if corners is not None:
+                out.append(corners.reshape(-1, 2).astype(np.float64) + (x0, y0))
+        return np.concatenate(out) if out else np.zeros((0, 2))
 
-        def cell_of(p):
-            cx = np.clip((p[:, 0] / cell_w).astype(int), 0, o.grid_cols - 1)
-            cy = np.clip((p[:, 1] / cell_h).astype(int), 0, o.grid_rows - 1)
-            return cy * o.grid_cols + cx
-
-        have = np.bincount(cell_of(existing), minlength=n_cells) if existing.size else np.zeros(n_cells, int)
-        need = np.maximum(quota - have, 0)
-        if need.sum() == 0 or existing.shape[0] >= o.target_features + n_cells:
-            return np.zeros((0, 2))
-        corners = cv2.goodFeaturesToTrack(image, maxCorners=4 * o.target_features, qualityLevel=o.quality_level,
-                                          minDistance=o.min_distance_px, mask=mask, blockSize=o.block_size_px)
-        if corners is None:
-            return np.zeros((0, 2))
-        corners = corners.reshape(-1, 2).astype(np.float64)  # strongest first
-        cells = cell_of(corners)
-        # keep, in each cell, the strongest `need[cell]` corners
+    def _within_need(self, corners) -> np.ndarray:
+        """True for the first (strongest) corners of each cell up to the cell's need."""
+        cells = self._cell_of(corners) if corners.size else np.zeros(0, int)
         order = np.argsort(cells, kind="stable")
-        sorted_cells = cells[order]
-        first = np.searchsorted(sorted_cells, sorted_cells, side="left")
-        rank = np.arange(order.size) - first
-        keep = order[rank < need[sorted_cells]]
-        return corners[np.sort(keep)]
+        first = np.searchsorted(cells[order], cells[order], side="left")
+        keep = np.zeros(cells.size, bool)
+        keep[order] = (np.arange(order.size) - first) < self._need[cells[order]]
+        return keep
+
+    def _rest_cells(self, tried, started) -> None:
+        """Cells tried this frame that started fewer than a quarter of their ``tried`` (n, 2)
+        corners as tracks (``started``, (k, 2)) rest for ``detect_retry_frames`` frames, twice as
+        long after each further idle try (at most 32 frames)."""
+        if self._cells_tried.size:
+            n_cells = self._cell_rest.size
+            n_tried = np.bincount(self._cell_of(tried), minlength=n_cells) if tried.size else np.zeros(n_cells, int)
+            n_started = np.bincount(self._cell_of(started), minlength=n_cells) if started.size else np.zeros(n_cells, int)
+            tried_cells = self._cells_tried
+            idle = 4 * n_started[tried_cells] < n_tried[tried_cells]
+            self._cell_fails[tried_cells] = np.where(idle, self._cell_fails[tried_cells] + 1, 0)
+            fails = self._cell_fails[tried_cells[idle]]
+            self._cell_rest[tried_cells[idle]] = np.minimum(self.options.detect_retry_frames * 2 ** (fails - 1), 32)
 
     # ------------------------------------------------------------------ the step
     def process(self, left, right) -> tuple[np.ndarray, np.ndarray]:
@@ -488,8 +603,17 @@ class StereoTracker:
 
         Returns ``(ids (n,) int64 strictly increasing, pixels (n, 4) [uL, vL, uR, vR])``.
         """
-        cv2 = self._cv2
-        o = self.options
+        frame = self._frame(left, right)
+        tracks = self._live
+        if len(tracks) and self._prev_left is not None:
+            tracks = self._track_temporal(frame, tracks)
+            tracks = self._track_stereo(frame, tracks)
+            tracks = self._check_geometry(tracks)
+        tracks = tracks.concat(self._new_tracks(frame, tracks))
+        return self._commit(frame, tracks)
+
+    def _frame(self, left, right) -> dict:
+        """The checked pair and what the steps share of it (gradients for the affine step)."""
         left = np.ascontiguousarray(left)
         right = np.ascontiguousarray(right)
         if left.ndim != 2 or left.shape != right.shape or left.dtype != np.uint8 or right.dtype != np.uint8:
@@ -498,87 +622,152 @@ class StereoTracker:
             self._shape = left.shape
         elif left.shape != self._shape:
             raise ValueError(f"image size changed from {self._shape} to {left.shape}")
-        pyr_l, pyr_r = left, right  # (OpenCV's Python binding takes images, not prebuilt pyramids)
+        frame = {"left": left, "right": right}
+        if self.options.affine_radius_px > 0:
+            frame["left_f"], frame["right_f"] = left.astype(np.float32), right.astype(np.float32)
+        return frame
+
+    def _end(self, tracks: "_Tracks", keep: np.ndarray, reason: str) -> "_Tracks":
+        """Tracks where ``keep``; the others end, counted under ``reason`` with their length."""
+        ended = ~keep
+        n = int(np.count_nonzero(ended))
+        if n:
+            self.stats.count_end(reason, self.stats.frames - tracks.born[ended])
+        return tracks.take(keep)
+
+    def _track_temporal(self, frame, tracks: "_Tracks") -> "_Tracks":
+        """Step 1: KLT of the live tracks from the previous left image, forward-backward check."""
+        o = self.options
+        guess, d_pred = self._predict(tracks.pixels)
+        cur, ok, fb = self._klt(self._prev_left, frame["left"], tracks.pixels[:, :2], guess, o.klt_levels)
+        ok &= fb <= o.fb_threshold_px
+        tracks, cur, d_pred = self._end(tracks, ok, "forward_backward"), cur[ok], d_pred[ok]
+        inside = self._inside(cur)
+        tracks, cur, d_pred = self._end(tracks, inside, "left_image"), cur[inside], d_pred[inside]
+        tracks.prev, tracks.pixels = tracks.pixels, np.stack([cur[:, 0], cur[:, 1], cur[:, 0] - d_pred, cur[:, 1]], 1)
+        return tracks
+
+    def _track_stereo(self, frame, tracks: "_Tracks") -> "_Tracks":
+        """Step 2 and 2b: left-to-right match from the predicted disparity, affine refinement of both.
+
+        With ``stereo_tracked_levels`` 0 (and the affine step on) there is no stereo KLT: the right
+        position is the refined left one moved by the predicted disparity, refined in its turn."""
+        o = self.options
+        disparity = tracks.pixels[:, 0] - tracks.pixels[:, 2]  # predicted by _track_temporal
+        if o.stereo_tracked_levels > 0 or o.affine_radius_px <= 0:
+            stereo, sok = self._stereo(frame["left"], frame["right"], tracks.pixels[:, :2], disparity,
+                                       max(1, o.stereo_tracked_levels))
+            tracks = self._end(tracks, sok, "stereo_tracked")
+            tracks.pixels = stereo[sok]
+            if o.affine_radius_px <= 0:
+                return tracks
+        pl, AL, okl = self._affine(frame["left_f"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0])
+        guess_r = tracks.pixels[:, 2:] + (pl - tracks.pixels[:, :2]) if o.stereo_tracked_levels > 0 else \
+            pl - np.stack([disparity, np.zeros_like(disparity)], axis=1)
+        pr, AR, okr = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1])
+        tracks.pixels = np.concatenate([pl, pr], axis=1)
+        tracks.warps = np.stack([AL, AR], axis=1)
+        tracks = self._end(tracks, okl & okr & self._stereo_ok(tracks.pixels), "appearance")
+        return self._reanchor(frame, tracks)
+
+    def _reanchor(self, frame, tracks: "_Tracks") -> "_Tracks":
+        """Tracks whose left warp has grown past ``affine_reanchor_scale`` (the point came closer)
+        take their current left appearance as the template; the right warp follows."""
+        s = self.options.affine_reanchor_scale
+        if s <= 0 or not len(tracks):
+            return tracks
+        grown = np.flatnonzero(np.linalg.det(tracks.warps[:, 0]) > s * s)
+        if grown.size:
+            AL_inv = np.linalg.inv(tracks.warps[grown, 0])
+            tracks.templates[grown] = self._templates(frame["left_f"], tracks.pixels[grown, :2])
+            tracks.warps[grown, 1] = tracks.warps[grown, 1] @ AL_inv
+            tracks.warps[grown, 0] = np.eye(2)
+            self.stats.reanchored += int(grown.size)
+        return tracks
+
+    def _check_geometry(self, tracks: "_Tracks") -> "_Tracks":
+        """Steps 3 and 3b: P3P-RANSAC against the previous triangulation, then the drift check."""
+        tracks = self._end(tracks, self._geometric_inliers(tracks.prev, tracks.pixels), "geometric")
+        if not self._motion_ok:  # the chain is broken: no drift reference for the tracks alive now
+            tracks.refs = np.full_like(tracks.refs, np.nan)
+            return tracks
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = self._motion
+        self._cam_T_ref = step @ self._cam_T_ref
+        return self._end(tracks, self._drift_ok(tracks.refs, tracks.pixels), "drift")
+
+    def _new_tracks(self, frame, tracks: "_Tracks") -> "_Tracks":
+        """Step 4: corners in the cells below their share, matched into the right image."""
+        o = self.options
+        new = self._detect(frame["left"], tracks.pixels[:, :2])
         st = self.stats
+        st.detected += new.shape[0]
+        tpl = np.zeros((new.shape[0], self._offsets.shape[0], 7), np.float32)
+        if o.affine_radius_px > 0 and new.shape[0]:
+            tpl = self._templates(frame["left_f"], new)
+            contrast = tpl[..., 0].std(axis=1) > 2.0  # not the featureless sky
+            st.rejected_stereo_new += int(np.count_nonzero(~contrast))
+            new, tpl = new[contrast], tpl[contrast]
+        tried = new
+        stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels,
+                                   o.stereo_window_px)
+        st.rejected_stereo_new += int(np.count_nonzero(~sok))
+        stereo, tpl = stereo[sok], tpl[sok]
+        if o.min_expected_frames > 0 and self._motion_ok:
+            stay = self._expected_frames(stereo, o.min_expected_frames) >= o.min_expected_frames
+            st.not_started += int(np.count_nonzero(~stay))
+            stereo, tpl = stereo[stay], tpl[stay]
+        A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
+        if o.affine_radius_px > 0 and stereo.shape[0]:
+            pr, A[:, 1], okr = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1])
+            stereo = np.concatenate([stereo[:, :2], pr], axis=1)
+            aok = okr & self._stereo_ok(stereo)
+            st.rejected_stereo_new += int(np.count_nonzero(~aok))
+            stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
+        cap = self._within_need(stereo[:, :2])
+        stereo, tpl, A = stereo[cap], tpl[cap], A[cap]
+        self._rest_cells(tried, stereo[:, :2])
+        n = stereo.shape[0]
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        ref_T_cam = np.linalg.inv(self._cam_T_ref)
+        refs = self._triangulate(stereo) @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]
+        return _Tracks(ids, stereo, np.full((n, 4), np.nan), tpl, A, refs, np.full(n, st.frames, np.int64))
 
-        use_affine = o.affine_radius_px > 0
-        if use_affine:
-            grad_l, grad_r = self._gradients(left), self._gradients(right)
-        m = self._offsets.shape[0]
-        ids = np.zeros(0, np.int64)
-        pixels = np.zeros((0, 4))
-        templates = np.zeros((0, m), np.float32)
-        warps = np.zeros((0, 2, 2, 2))
-        if self._ids.size and self._prev_pyramid is not None:
-            prev = self._pixels
-            guess = self._predict(prev)
-            cur, ok, fb = self._klt(self._prev_pyramid, pyr_l, prev[:, :2], guess, o.klt_levels)
-            ok &= fb <= o.fb_threshold_px
-            st.lost_temporal += int(np.count_nonzero(~ok))
-            inside = self._inside(cur)
-            st.left_image += int(np.count_nonzero(ok & ~inside))
-            ok &= inside
-            prev, cur, tid = prev[ok], cur[ok], self._ids[ok]
-            tpl, A, ref = self._templates[ok], self._A[ok], self._p_in_ref[ok]
-            disparity = prev[:, 0] - prev[:, 2]
-            stereo, sok = self._stereo(pyr_l, pyr_r, cur, disparity, o.klt_levels)
-            st.rejected_stereo_tracked += int(np.count_nonzero(~sok))
-            prev, stereo, tid, tpl, A, ref = prev[sok], stereo[sok], tid[sok], tpl[sok], A[sok], ref[sok]
-            if use_affine:
-                pl, AL, okl = self._affine(grad_l, tpl, stereo[:, :2], A[:, 0])
-                pr, AR, okr = self._affine(grad_r, tpl, stereo[:, 2:], A[:, 1])
-                stereo = np.concatenate([pl, pr], axis=1)
-                A = np.stack([AL, AR], axis=1)
-                aok = okl & okr & self._stereo_ok(stereo)
-                st.rejected_affine += int(np.count_nonzero(~aok))
-                prev, stereo, tid, tpl, A, ref = prev[aok], stereo[aok], tid[aok], tpl[aok], A[aok], ref[aok]
-            geo = self._geometric_inliers(prev, stereo)
-            st.rejected_geometric += int(np.count_nonzero(~geo))
-            ids, pixels, templates, warps, refs = tid[geo], stereo[geo], tpl[geo], A[geo], ref[geo]
-            if self._motion_ok:
-                step = np.eye(4)
-                step[:3, :3], step[:3, 3] = self._motion
-                self._cam_T_ref = step @ self._cam_T_ref
-                dok = self._drift_ok(refs, pixels)
-                st.rejected_drift += int(np.count_nonzero(~dok))
-                ids, pixels, templates, warps, refs = ids[dok], pixels[dok], templates[dok], warps[dok], refs[dok]
-            else:  # the chain is broken: no drift reference for the tracks alive now
-                refs = np.full_like(refs, np.nan)
-        else:
-            refs = np.zeros((0, 3))
+    def _commit(self, frame, tracks: "_Tracks") -> tuple[np.ndarray, np.ndarray]:
+        """Keep this frame's tracks (sorted by id) and its left image for the next one."""
+        tracks = tracks.take(np.argsort(tracks.ids, kind="stable"))
+        self._live, self._prev_left = tracks, frame["left"]
+        self.stats.frames += 1
+        self.stats.tracks_per_frame.append(len(tracks))
+        return tracks.ids.copy(), tracks.pixels.copy()
 
-        new = self._detect(left, pixels[:, :2])
-        if new.shape[0]:
-            st.detected += new.shape[0]
-            stereo, sok = self._stereo(pyr_l, pyr_r, new, np.zeros(new.shape[0]), o.stereo_levels)
-            st.rejected_stereo_new += int(np.count_nonzero(~sok))
-            stereo = stereo[sok]
-            A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
-            if use_affine:
-                tpl = self._sample(grad_l, stereo[:, :2], A[:, 0])[..., 0].astype(np.float32)
-                pr, AR, okr = self._affine(grad_r, tpl, stereo[:, 2:], A[:, 1])
-                stereo = np.concatenate([stereo[:, :2], pr], axis=1)
-                A[:, 1] = AR
-                aok = okr & self._stereo_ok(stereo) & (tpl.std(axis=1) > 2.0)
-                st.rejected_stereo_new += int(np.count_nonzero(~aok))
-                stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
-            else:
-                tpl = np.zeros((stereo.shape[0], m), np.float32)
-            new_ids = np.arange(self._next_id, self._next_id + stereo.shape[0], dtype=np.int64)
-            self._next_id += stereo.shape[0]
-            ids = np.concatenate([ids, new_ids])
-            pixels = np.concatenate([pixels, stereo])
-            templates = np.concatenate([templates, tpl])
-            warps = np.concatenate([warps, A])
-            ref_T_cam = np.linalg.inv(self._cam_T_ref)
-            refs = np.concatenate([refs, self._triangulate(stereo) @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]])
-        order = np.argsort(ids, kind="stable")
-        ids, pixels = ids[order], pixels[order]
-        self._templates, self._A, self._p_in_ref = templates[order], warps[order], refs[order]
-        self._ids, self._pixels, self._prev_pyramid = ids, pixels, pyr_l
-        st.frames += 1
-        st.tracks_per_frame.append(int(ids.size))
-        return ids.copy(), pixels.copy()
+
+@dataclass
+class _Tracks:
+    """The live tracks, one row per track in every array."""
+
+    ids: np.ndarray  # (n,) int64
+    pixels: np.ndarray  # (n, 4) [uL, vL, uR, vR] in the current frame
+    prev: np.ndarray  # (n, 4) ... in the previous frame (NaN for new tracks)
+    templates: np.ndarray  # (n, m, 7) float32: the first left appearance and its dT/dp (affine step)
+    warps: np.ndarray  # (n, 2, 2, 2): left and right affine warps of the template
+    refs: np.ndarray  # (n, 3): first triangulation in the first frame's camera (NaN: none)
+    born: np.ndarray  # (n,) int64: frame index of the first observation
+
+    @classmethod
+    def empty(cls, m: int) -> "_Tracks":
+        return cls(np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, m, 7), np.float32),
+                   np.zeros((0, 2, 2, 2)), np.zeros((0, 3)), np.zeros(0, np.int64))
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+    def take(self, keep) -> "_Tracks":
+        return _Tracks(*(getattr(self, f.name)[keep] for f in fields(self)))
+
+    def concat(self, other: "_Tracks") -> "_Tracks":
+        return _Tracks(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
 
 
 def finish_tracks(frames: list[tuple[np.ndarray, np.ndarray]], min_track_length: int):
