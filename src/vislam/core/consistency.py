@@ -173,19 +173,9 @@ def filter_nees(drive, options: FilterOptions, mode: str = "slam") -> NeesTrace:
     cam_T_imu = np.asarray(drive.cam_T_imu)
 
     def landmarks_at(t: int) -> None:
-        ids = filt.live_landmark_ids
-        if ids.size == 0:
+        if filt.live_landmark_ids.size == 0:
             return
-        anchors = None
-        if mode == "mapping":
-            rows = filt.tracks.rows(ids)
-            p_est, cov = filt.tracks["mean"][rows], filt.tracks["cov"][rows]
-        else:
-            state = filt.state
-            slots = np.arange(state.n_landmarks)
-            p_est, cov = state.lm_mean, state.param_cov(slots)  # the filter's own chart
-            if state.inverse_depth:
-                anchors = state.world_T_anchor
+        ids, p_est, cov, anchors = filt.landmark_estimates()  # the filter's own chart
         static = ~moving[ids]
         if not np.any(static):
             return
@@ -223,9 +213,8 @@ def filter_nees(drive, options: FilterOptions, mode: str = "slam") -> NeesTrace:
             else:
                 filt.step(frame)
             finished()
-        if hasattr(filt, "drain"):
-            filt.drain()
-            finished()
+        filt.drain()  # frames a delayed filter still holds
+        finished()
     except EstimationError as exc:
         error = str(exc)
     with np.errstate(invalid="ignore", divide="ignore"):

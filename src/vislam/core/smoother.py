@@ -70,7 +70,10 @@ import time
 import numpy as np
 
 from vislam.core.bookkeeping import MapBuilder, RepeatDetector, sorted_positions
-from vislam.core.filters import FrameStats, _check_dt, _History, _observations, _StatsDelta, _twist
+from vislam.core.contract import FrameStats, FrameStatsCounter, LandmarkEstimates, StepwiseFilter
+from vislam.core.contract import checked_dt as _check_dt
+from vislam.core.contract import checked_observations as _observations
+from vislam.core.contract import twist as _twist
 from vislam.core.lie import se3_inverse
 from vislam.core.propagation import body_to_level, body_twist
 from vislam.core.options import FilterOptions
@@ -213,7 +216,7 @@ class _Landmark:
         self.consecutive, self.rejected, self.stamp = 0, False, stamp
 
 
-class SmootherFilter(_History):
+class SmootherFilter(StepwiseFilter):
     """Fixed-lag smoother with the stepwise API of the EKFs (see the module docstring).
 
     ``calibration``: ``sequence.calibration`` (camera and cam_T_imu); ``options``: a
@@ -225,13 +228,14 @@ class SmootherFilter(_History):
 
     def __init__(self, calibration: Calibration, options: FilterOptions | None = None):
         gtsam = self._g = _gtsam()
+        self._init_history()  # and the diagnostics: failed, drift_log, timings
         self.calibration = calibration
         self.options = opts = options or FilterOptions()
         cam = calibration.camera
-        self.model = StereoModel(cam, calibration.cam_T_imu)
+        self._model = StereoModel(cam, calibration.cam_T_imu)
         self._V = opts.V
         self._K = gtsam.Cal3_S2Stereo(cam.fsu, cam.fsv, 0.0, cam.cu, cam.cv, cam.baseline_m)
-        self._body_P_sensor = gtsam.Pose3(_rigid(self.model.imu_T_cam))
+        self._body_P_sensor = gtsam.Pose3(_rigid(self._model.imu_T_cam))
         s = opts.pixel_noise_px if opts.smoother_pixel_noise_px is None else opts.smoother_pixel_noise_px
         self._sigmas = np.array([s, s, s / np.sqrt(2.0)])
         base = gtsam.noiseModel.Diagonal.Sigmas(self._sigmas)
@@ -251,12 +255,11 @@ class SmootherFilter(_History):
         self._remap = opts.stalled_tracks == "remap"
 
         self.stats = RunStats()
-        self._delta = _StatsDelta(self.stats)
+        self._delta = FrameStatsCounter(self.stats)
         self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats, calibration.camera)
         self._builder = MapBuilder()
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
-        self.failed: str | None = None
         self._time = 0.0  # seconds since the first frame
         self._pending_odometry = None  # (τ, u) of the next frame
         # window contents
@@ -283,10 +286,8 @@ class SmootherFilter(_History):
         self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
         self._unchecked: tuple = (-1, [])  # (frame, observations, factor indices) not yet checked
         self._drift_gate = np.inf if opts.smoother_drift_ratio is None else float(opts.smoother_drift_ratio)
-        self.drift_log: list | None = None  # a list: (id, n, statistic / median, speed, frame) per test
         self._fresh: set[int] = set()  # frames whose _pose_value is from the latest update
-        self.timings = {"marginals_s": 0.0, "update_s": 0.0}
-        self._init_history()
+        self.diagnostics.timings = {"marginals_s": 0.0, "update_s": 0.0}
 
     # --- read access ----------------------------------------------------------------
     @property
@@ -316,6 +317,12 @@ class SmootherFilter(_History):
         if not lms:
             return np.zeros((0, 3))
         return np.array([self._smoother.calculateEstimatePoint3(self._L(lm.key)) for lm in lms])
+
+    def landmark_estimates(self) -> LandmarkEstimates:
+        """The landmarks in the window (not rejected) as world points; their covariances
+        are NaN (computed only when a landmark leaves the window)."""
+        ids = self.live_landmark_ids
+        return LandmarkEstimates(ids, self.live_p_lm_in_world, np.full((ids.size, 3, 3), np.nan))
 
     def frozen_map(self) -> LandmarkMap:
         """The landmarks marginalized so far (a copy)."""
@@ -382,14 +389,14 @@ class SmootherFilter(_History):
         try:
             self._frame(t, ids_seen, z)
         except EstimationError as exc:
-            self.failed = str(exc)
+            self.diagnostics.failed = str(exc)
             raise
         except RuntimeError as exc:  # gtsam: indeterminate system, cheirality, ... (messages of several lines)
-            self.failed = f"numerical failure at frame {t}: {_one_line(exc)}"
-            raise EstimationError(self.failed, frame=t) from exc
+            self.diagnostics.failed = f"numerical failure at frame {t}: {_one_line(exc)}"
+            raise EstimationError(self.diagnostics.failed, frame=t) from exc
         except Exception as exc:  # noqa: BLE001 - any other failure inside GTSAM or here: one line, a partial result
-            self.failed = f"failure at frame {t}: {type(exc).__name__}: {_one_line(exc)}"
-            raise EstimationError(self.failed, frame=t) from exc
+            self.diagnostics.failed = f"failure at frame {t}: {type(exc).__name__}: {_one_line(exc)}"
+            raise EstimationError(self.diagnostics.failed, frame=t) from exc
         self.stats.frames_processed += 1
         n_live = sum(1 for lm in self._landmarks.values() if not lm.rejected)
         self.stats.max_state_landmarks = max(self.stats.max_state_landmarks, len(self._landmarks))
@@ -480,7 +487,7 @@ class SmootherFilter(_History):
             new_frame = np.array(new_frame)
             for k in np.unique(new_frame[good]):
                 sel = np.flatnonzero(good & (new_frame == k))
-                p_w, _ = mapping_initialize(self.model, se3_inverse(self._pose_value[int(k)]), new_z[sel], self._V)
+                p_w, _ = mapping_initialize(self._model, se3_inverse(self._pose_value[int(k)]), new_z[sel], self._V)
                 for j, p in zip(sel, p_w):
                     key = self._next_key
                     self._next_key += 1
@@ -511,11 +518,11 @@ class SmootherFilter(_History):
         self._current = self._smoother.calculateEstimatePose3(X).matrix()
         self._pose_value[t] = self._current
         self._fresh = {t}
-        self.timings["update_s"] += time.perf_counter() - tic
+        self.diagnostics.timings["update_s"] += time.perf_counter() - tic
         if self.options.smoother_pose_covariance:
             tic = time.perf_counter()
             self._current_cov = self._online_cov[t] = to_ekf_covariance(self._smoother.marginalCovariance(X))
-            self.timings["marginals_s"] += time.perf_counter() - tic
+            self.diagnostics.timings["marginals_s"] += time.perf_counter() - tic
         if len(factor_index) != n_new:  # pragma: no cover - gtsam contract
             raise EstimationError(f"gtsam returned {len(factor_index)} factor indices for {n_new} factors", frame=t)
         # graph order: the pose factor, the stereo factors of `added`, then (prior, stereo) per new landmark
@@ -646,9 +653,10 @@ class SmootherFilter(_History):
         if np.any(moving):
             speed = self._apparent_speed(world_T_imu, p[owner], frames, r, front, starts)
             moving &= speed > self.options.smoother_drift_min_speed_mps
-        if self.drift_log is not None:
-            self.drift_log.extend(zip([lm.id for lm, _ in todo], cnt.tolist(), (stat / max(typical, 1e-12)).tolist(),
-                                      speed.tolist(), [self.frame_index] * n))
+        drift_log = self.diagnostics.drift_log
+        if drift_log is not None:
+            drift_log.extend(zip([lm.id for lm, _ in todo], cnt.tolist(), (stat / max(typical, 1e-12)).tolist(),
+                                 speed.tolist(), [self.frame_index] * n))
         for j in np.flatnonzero(moving).tolist():
             lm = todo[j][0]
             lm.rejected = True
@@ -665,7 +673,7 @@ class SmootherFilter(_History):
         p(t_i) = p + δp + v (t_i − t̄), over observations from poses ``world_T_imu``
         (N, 4, 4) of points ``p`` (N, 3) with whitened residuals ``r`` (N, 3), grouped
         by landmark (``starts``: first row of each)."""
-        cam_T_world = self.model.cam_T_imu @ se3_inverse(world_T_imu)
+        cam_T_world = self._model.cam_T_imu @ se3_inverse(world_T_imu)
         R = cam_T_world[:, :3, :3]
         q = np.einsum("kij,kj->ki", R, p) + cam_T_world[:, :3, 3]
         q[:, 2] = np.where(front, q[:, 2], 1.0)
@@ -729,7 +737,7 @@ class SmootherFilter(_History):
         """((n, 3) whitened (uL, uR, v) errors, prediction − measurement, of observations
         ``pix`` (n, 4) of landmarks ``p`` (n, 3) from poses (n, 4, 4); (n,) in front of
         the camera)."""
-        cam_T_world = self.model.cam_T_imu @ se3_inverse(world_T_imu)
+        cam_T_world = self._model.cam_T_imu @ se3_inverse(world_T_imu)
         q = np.einsum("kij,kj->ki", cam_T_world[:, :3, :3], p) + cam_T_world[:, :3, 3]
         cam = self.calibration.camera
         front = q[:, 2] > 1e-6
@@ -747,7 +755,7 @@ class SmootherFilter(_History):
             self._freeze_pose(k)
         gone = [lm for lm in self._landmarks.values() if lm.stamp < cutoff]
         self._freeze_landmarks(gone)
-        self.timings["marginals_s"] += time.perf_counter() - tic
+        self.diagnostics.timings["marginals_s"] += time.perf_counter() - tic
 
     def _freeze_pose(self, k: int) -> None:
         """Pose k leaves the window: its current estimate is final (its covariance is
@@ -773,7 +781,7 @@ class SmootherFilter(_History):
             return np.linalg.inv(info)
         frames = np.array([e[0] for lm in lms for e in lm.obs], dtype=np.int64)
         uniq, inv = np.unique(frames, return_inverse=True)
-        cam_T_world = self.model.cam_T_imu @ se3_inverse(np.array([self._pose_estimate(int(k)) for k in uniq]))
+        cam_T_world = self._model.cam_T_imu @ se3_inverse(np.array([self._pose_estimate(int(k)) for k in uniq]))
         R = cam_T_world[inv, :3, :3]
         q = np.einsum("kij,kj->ki", R, p[owner]) + cam_T_world[inv, :3, 3]
         ok = q[:, 2] > 1e-6
@@ -805,14 +813,14 @@ class SmootherFilter(_History):
                                   cols["last"][m], st)
 
     def _require_healthy(self) -> None:
-        if self.failed is not None:
-            raise EstimationError(f"the smoother stopped earlier ({self.failed}); start a new one")
+        if self.diagnostics.failed is not None:
+            raise EstimationError(f"the smoother stopped earlier ({self.diagnostics.failed}); start a new one")
 
     def finish(self) -> LandmarkMap:
         """Freeze every pose and landmark still in the window (their current estimates
         and marginals) and return the whole map."""
         tic = time.perf_counter()
-        healthy = self.failed is None
+        healthy = self.diagnostics.failed is None
         t_last, unchecked = self._unchecked
         for a in unchecked:  # the last frame's observations: no later update to check them by
             if a[3][2] >= 0:
@@ -826,7 +834,7 @@ class SmootherFilter(_History):
                 del self._pose_stamp[k]
         if healthy:
             self._freeze_landmarks(list(self._landmarks.values()))
-        self.timings["marginals_s"] += time.perf_counter() - tic
+        self.diagnostics.timings["marginals_s"] += time.perf_counter() - tic
         return self._builder.build()
 
     # --- refinement -------------------------------------------------------------------
@@ -899,8 +907,9 @@ def run_smoother(sequence, options: FilterOptions | None = None, progress=None, 
     options = options or FilterOptions()
     filt = SmootherFilter(sequence.calibration, options)
     result = drive(filt, sequence, progress, on_frame)
-    timing = {"smoother_seconds": float(result.stats.filter_seconds), "smoother_update_seconds": filt.timings["update_s"],
-              "smoother_marginals_seconds": filt.timings["marginals_s"]}
+    timings = filt.diagnostics.timings
+    timing = {"smoother_seconds": float(result.stats.filter_seconds), "smoother_update_seconds": timings["update_s"],
+              "smoother_marginals_seconds": timings["marginals_s"]}
     if options.refine and not result.partial:
         text = f"refining the whole drive ({result.stats.frames_processed} poses, batch Levenberg-Marquardt)"
         logger.info(text)
