@@ -216,6 +216,20 @@ class _Landmark:
         self.consecutive, self.rejected, self.stamp = 0, False, stamp
 
 
+class _NewFactors:
+    """What one frame adds to the window: the factor graph, initial values and time
+    stamps of the update, and its stereo factors' entries (their graph positions become
+    the smoother's factor indices after the update) and ``added`` (landmark, pose frame,
+    pixels, entry) of the observations of landmarks already in the window."""
+
+    __slots__ = ("graph", "values", "stamps", "entries", "added")
+
+    def __init__(self, graph, values, stamps: dict):
+        self.graph, self.values, self.stamps = graph, values, stamps
+        self.entries: list = []
+        self.added: list = []
+
+
 class SmootherFilter(StepwiseFilter):
     """Fixed-lag smoother with the stepwise API of the EKFs (see the module docstring).
 
@@ -405,8 +419,30 @@ class SmootherFilter(StepwiseFilter):
         return self.last_frame_stats
 
     def _frame(self, t: int, ids_seen: np.ndarray, z: np.ndarray) -> None:
-        g, opts = self._g, self.options
-        graph, values, stamps = g.NonlinearFactorGraph(), g.Values(), {}
+        """One frame, in the EKF's order of steps (see :meth:`vislam.core.filters.SlamFilter.update`)."""
+        g = self._g
+        new = _NewFactors(g.NonlinearFactorGraph(), g.Values(), {})
+        X = self._X(t)
+        self._predict_pose(t, new)  # the motion model (the EKF's predict)
+        now = self._time
+        cutoff = now - self._window
+        rep, lag = self._select(ids_seen, z, t)  # repeats, stall counts, tracks (its _select)
+        pending = self._add_observations(t, ids_seen, z, rep, lag, now, cutoff, new)  # in the window (_update_live)
+        if pending[0]:
+            self._initialize_new(t, *pending, now, new)  # new landmarks (its _initialize_new)
+        # what leaves the window in this update (its _marginalize_ended): final values and marginals first
+        self._marginalize(cutoff)
+        self._update_window(t, X, new)
+        # gate and reject (its _reject): the previous frame's observations, whose poses and
+        # landmarks have had two updates now; those that fail are removed with the next update
+        previous, self._unchecked = self._unchecked, (t, new.added)
+        self._check_outliers(*previous)
+
+    def _predict_pose(self, t: int, new: "_NewFactors") -> None:
+        """Step 1: the pose X(t) with its factor: the prior at the identity for the first
+        frame, else the motion model from X(t−1) with the pending odometry (its initial
+        value the latest estimate moved by it)."""
+        g = self._g
         X = self._X(t)
         if t == 0:
             pose = np.eye(4)
@@ -432,15 +468,16 @@ class SmootherFilter(StepwiseFilter):
             self._odometry_factors.append(f)
             self._time += tau
         self._pending_odometry = None
-        graph.add(f)
-        values.insert(X, g.Pose3(pose))
-        now = self._time
-        stamps[X] = now
-        self._pose_stamp[t] = now
+        new.graph.add(f)
+        new.values.insert(X, g.Pose3(pose))
+        new.stamps[X] = self._time
+        self._pose_stamp[t] = self._time
         self._pose_value[t] = pose
-        cutoff = now - self._window
 
-        # observations: repeats, stall counts, tracks
+    def _select(self, ids_seen: np.ndarray, z: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """Step 2: the frame's exact repeats and each observation's stall count (the
+        remap attaches it to pose t − lag); tracks not seen end, rejected ones out of view
+        are forgotten. Returns (repeat mask, lag)."""
         rep = self._repeated(t, ids_seen, z)
         pos, hit = sorted_positions(ids_seen, self._prev_ids)
         lag = np.where(hit, self._prev_lag[pos] if self._prev_ids.size else 0, 0)
@@ -451,12 +488,14 @@ class SmootherFilter(StepwiseFilter):
         for i in ended:
             del self._tracks[i]
         self._rejected_ids &= set(ids_seen.tolist())
+        return rep, lag
 
+    def _add_observations(self, t: int, ids_seen: np.ndarray, z: np.ndarray, rep: np.ndarray, lag: np.ndarray,
+                          now: float, cutoff: float, new: "_NewFactors") -> tuple[list, list, list]:
+        """Step 3: a stereo factor for each observation of a landmark in the window (not
+        a repeat, not rejected, its remapped pose still in the window). Returns (ids,
+        pixels, pose frames) of the observations of new tracks."""
         new_ids, new_z, new_frame = [], [], []
-        # per stereo factor [frame of its pose, index in _stereo_factors, position in `graph`
-        # (after the update: the smoother's factor index; -1 once removed)]
-        entries = []
-        added = []  # (landmark, frame of the pose, pixels) of the stereo factors added
         for i in np.flatnonzero(~rep):
             lm_id = int(ids_seen[i])
             if lm_id in self._rejected_ids:
@@ -473,47 +512,54 @@ class SmootherFilter(StepwiseFilter):
                 continue
             lm = self._landmarks[key]
             lm.stamp = now
-            stamps[self._L(key)] = now
-            entry = [k, len(self._stereo_factors), graph.size(), z[i], False]
+            new.stamps[self._L(key)] = now
+            entry = [k, len(self._stereo_factors), new.graph.size(), z[i], False]
             lm.obs.append(entry)
-            entries.append(entry)
-            added.append((lm, k, z[i], entry))
-            graph.add(self._stereo(z[i], k, key))
+            new.entries.append(entry)
+            new.added.append((lm, k, z[i], entry))
+            new.graph.add(self._stereo(z[i], k, key))
+        return new_ids, new_z, new_frame
 
-        if new_ids:
-            new_z = np.array(new_z)
-            good = initialization_guard(self.calibration.camera, new_z, opts)
-            self.stats.observations_not_initialized += int((~good).sum())
-            new_frame = np.array(new_frame)
-            for k in np.unique(new_frame[good]):
-                sel = np.flatnonzero(good & (new_frame == k))
-                p_w, _ = mapping_initialize(self._model, se3_inverse(self._pose_value[int(k)]), new_z[sel], self._V)
-                for j, p in zip(sel, p_w):
-                    key = self._next_key
-                    self._next_key += 1
-                    lm = _Landmark(key, new_ids[j], t, now)
-                    self._landmarks[key] = lm
-                    self._tracks[new_ids[j]] = key
-                    L = self._L(key)
-                    values.insert(L, p)
-                    stamps[L] = now
-                    prior = g.PriorFactorPoint3(L, p, self._lm_prior)
-                    self._prior_factors.append(prior)
-                    graph.add(prior)
-                    entry = [int(k), len(self._stereo_factors), graph.size(), new_z[j], True]
-                    lm.obs.append(entry)
-                    entries.append(entry)
-                    graph.add(self._stereo(new_z[j], int(k), key))
-                    self.stats.landmarks_initialized += 1
-                    self.stats.observations_used += 1
+    def _initialize_new(self, t: int, new_ids: list, new_z: list, new_frame: list, now: float,
+                        new: "_NewFactors") -> None:
+        """Step 6: new landmarks from the EKF's initialization guards and the stereo
+        model's inverse at their pose's latest estimate, each with a weak prior and its
+        first stereo factor."""
+        g = self._g
+        new_z = np.array(new_z)
+        good = initialization_guard(self.calibration.camera, new_z, self.options)
+        self.stats.observations_not_initialized += int((~good).sum())
+        new_frame = np.array(new_frame)
+        for k in np.unique(new_frame[good]):
+            sel = np.flatnonzero(good & (new_frame == k))
+            p_w, _ = mapping_initialize(self._model, se3_inverse(self._pose_value[int(k)]), new_z[sel], self._V)
+            for j, p in zip(sel, p_w):
+                key = self._next_key
+                self._next_key += 1
+                lm = _Landmark(key, new_ids[j], t, now)
+                self._landmarks[key] = lm
+                self._tracks[new_ids[j]] = key
+                L = self._L(key)
+                new.values.insert(L, p)
+                new.stamps[L] = now
+                prior = g.PriorFactorPoint3(L, p, self._lm_prior)
+                self._prior_factors.append(prior)
+                new.graph.add(prior)
+                entry = [int(k), len(self._stereo_factors), new.graph.size(), new_z[j], True]
+                lm.obs.append(entry)
+                new.entries.append(entry)
+                new.graph.add(self._stereo(new_z[j], int(k), key))
+                self.stats.landmarks_initialized += 1
+                self.stats.observations_used += 1
 
-        # what leaves the window in this update: final values and marginals first
-        self._marginalize(cutoff)
-
+    def _update_window(self, t: int, X: int, new: "_NewFactors") -> None:
+        """The window's update with the frame's factors (and the removal of those gated
+        after the previous frame): the newest pose's estimate (and marginal), and the
+        smoother's index of every stereo factor added."""
         tic = time.perf_counter()
         remove, self._to_remove = self._to_remove, []
-        self._smoother.update(graph, values, stamps, remove)
-        n_new = graph.size()
+        self._smoother.update(new.graph, new.values, new.stamps, remove)
+        n_new = new.graph.size()
         factor_index = list(self._smoother.getISAM2Result().getNewFactorsIndices())
         self._current = self._smoother.calculateEstimatePose3(X).matrix()
         self._pose_value[t] = self._current
@@ -526,12 +572,8 @@ class SmootherFilter(StepwiseFilter):
         if len(factor_index) != n_new:  # pragma: no cover - gtsam contract
             raise EstimationError(f"gtsam returned {len(factor_index)} factor indices for {n_new} factors", frame=t)
         # graph order: the pose factor, the stereo factors of `added`, then (prior, stereo) per new landmark
-        for entry in entries:
+        for entry in new.entries:
             entry[2] = int(factor_index[entry[2]])
-        # check the previous frame's observations (their poses and landmarks have had two
-        # updates now); those that fail are removed with the next update
-        previous, self._unchecked = self._unchecked, (t, added)
-        self._check_outliers(*previous)
 
     def _stereo(self, pix: np.ndarray, k: int, key: int):
         g = self._g
