@@ -270,7 +270,6 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
 
     fig = Figure(figsize=COMPARISON_FIGSIZE_IN, dpi=DPI)
     FigureCanvasAgg(fig)
@@ -282,7 +281,21 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
     layer_xy = [np.asarray(layer.world_T_imu, dtype=np.float64).reshape(-1, 4, 4)[:, :2, 3] for layer in layers]
     gt_xy = None if ground_truth is None else np.asarray(ground_truth, dtype=np.float64).reshape(-1, 4, 4)[:, :2, 3]
 
-    # --- the view
+    limits, fits = _comparison_view(layer_xy, gt_xy)
+    p, lm_handles = _comparison_landmarks(ax, layers)  # under the trajectories
+    handles, leaving = _comparison_trajectories(ax, layers, layer_xy, fits, gt_xy, ground_truth_label)
+    handles += lm_handles
+    _label_map_axes(fig, ax, title, subtitle)
+    xlim, ylim, n_outside = _legend_below_and_fit(fig, ax, handles, p, limits)
+    with atomic_path(Path(path), suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI)
+    return {"xlim": tuple(map(float, xlim)), "ylim": tuple(map(float, ylim)), "landmarks_outside_view": n_outside,
+            "layers_leaving_view": leaving}
+
+
+def _comparison_view(layer_xy: list, gt_xy: np.ndarray | None) -> tuple[tuple, list[bool]]:
+    """The view of :func:`plot_comparison_map`: (limits (x0, x1, y0, y1), whether each
+    layer's trajectory stays within half a span of the base extent)."""
     if gt_xy is not None and gt_xy.shape[0]:
         base = [gt_xy]
     else:
@@ -295,9 +308,14 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
     fits = [xy.shape[0] > 0 and _inside(xy, window) for xy in layer_xy]
     limits = view_limits(np.concatenate(base + [xy for xy, ok in zip(layer_xy, fits) if ok]) if base or any(fits)
                          else np.zeros((0, 2)))
+    return limits, fits
 
-    # --- landmarks (under the trajectories)
-    handles: list = []
+
+def _comparison_landmarks(ax, layers) -> tuple[np.ndarray, list]:
+    """Each layer's landmarks in the map (small dots of its colour; rejected ones not
+    drawn): (all xy drawn, legend handles)."""
+    from matplotlib.lines import Line2D
+
     lm_handles: list = []
     all_lm = []
     n_lm_total = sum(len(layer.landmarks) for layer in layers if layer.landmarks is not None)
@@ -314,8 +332,15 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
         text = f"{layer.short or layer.label}: {int(ok.sum())} landmarks" + (
             f" ({n_rej} rejected, not shown)" if n_rej else "")
         lm_handles.append(Line2D([], [], ls="none", marker="o", ms=4, color=layer.color, alpha=0.7, label=text))
+    return (np.concatenate(all_lm) if all_lm else np.zeros((0, 2))), lm_handles
 
-    # --- trajectories
+
+def _comparison_trajectories(ax, layers, layer_xy: list, fits: list, gt_xy, ground_truth_label: str):
+    """The ground truth and each layer's trajectory, its end a square of its colour, the
+    start marked once: (legend handles, labels of the layers that leave the view)."""
+    from matplotlib.lines import Line2D
+
+    handles: list = []
     if gt_xy is not None and gt_xy.shape[0]:
         (line,) = ax.plot(gt_xy[:, 0], gt_xy[:, 1], color="0.2", lw=3.0, alpha=0.45, zorder=2,
                           label=ground_truth_label)
@@ -337,13 +362,15 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
         handles.append(Line2D([], [], ls="none", marker="o", ms=8, mfc="white", mec="black", mew=1.8, label="start"))
         handles.append(Line2D([], [], ls="none", marker="s", ms=7, mfc="0.7", mec="black", mew=0.8,
                               label="end (colour of its trajectory)"))
-    handles += lm_handles
+    return handles, leaving
 
-    _label_map_axes(fig, ax, title, subtitle)
-    # The legend goes below the axes (several estimates and landmark sets would hide part
-    # of the drive); it is laid out before the view is fitted, with the count of landmarks
-    # outside the view updated afterwards (the fitted view only grows).
-    p = np.concatenate(all_lm) if all_lm else np.zeros((0, 2))
+
+def _legend_below_and_fit(fig, ax, handles: list, p: np.ndarray, limits) -> tuple:
+    """The legend goes below the axes (several estimates and landmark sets would hide
+    part of the drive); it is laid out before the view is fitted, with the count of
+    landmarks outside the view updated afterwards (the fitted view only grows).
+    Returns (xlim, ylim, landmarks outside the view)."""
+    from matplotlib.lines import Line2D
 
     def outside_text(xlim, ylim) -> str | None:
         n = int(_outside(p, xlim, ylim).sum()) if p.size else 0
@@ -359,10 +386,7 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
     n_outside = int(_outside(p, xlim, ylim).sum()) if p.size else 0
     if first and legend is not None:
         legend.get_texts()[-1].set_text(final or "no landmark outside the view")
-    with atomic_path(Path(path), suffix=".png") as tmp:
-        fig.savefig(tmp, format="png", dpi=DPI)
-    return {"xlim": tuple(map(float, xlim)), "ylim": tuple(map(float, ylim)), "landmarks_outside_view": n_outside,
-            "layers_leaving_view": leaving}
+    return xlim, ylim, n_outside
 
 
 def plot_grouped_bars(path, panels, series, ylabel: str, title: str) -> None:
