@@ -263,44 +263,53 @@ class SimulationOptions:
 
     def __post_init__(self):
         for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name in _FAULT_VECTOR_FIELDS:
+            self._normalize_field(f)
+        self._check_ranges()
+
+    def _normalize_field(self, f) -> None:
+        """Check one field's type (numbers finite, >= 0 but start_time_s) and store it as
+        its plain Python type."""
+        value = getattr(self, f.name)
+        if f.name in _FAULT_VECTOR_FIELDS:
+            object.__setattr__(self, f.name, _three_finite(f.name, value))
+            return
+        if f.name in ("time_offset_s", "velocity_shift"):
+            _check_fault_scalar(self, f.name, value)
+            return
+        if f.name == "velocity_scale":
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                    or not math.isfinite(value) or not 0.01 <= value <= 100:
+                raise ConfigError(f"velocity_scale must be a number in [0.01, 100], got {value!r}")
+            object.__setattr__(self, f.name, float(value))
+            return
+        if f.name == "lever_arm_swapped":
+            if not isinstance(value, (bool, np.bool_)):
+                raise ConfigError(f"lever_arm_swapped must be true or false, got {value!r}")
+            object.__setattr__(self, f.name, bool(value))
+            return
+        if f.name == "cam_T_imu_translation_m":
+            if value is not None:
                 object.__setattr__(self, f.name, _three_finite(f.name, value))
-                continue
-            if f.name in ("time_offset_s", "velocity_shift"):
-                _check_fault_scalar(self, f.name, value)
-                continue
-            if f.name == "velocity_scale":
-                if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-                        or not math.isfinite(value) or not 0.01 <= value <= 100:
-                    raise ConfigError(f"velocity_scale must be a number in [0.01, 100], got {value!r}")
-                object.__setattr__(self, f.name, float(value))
-                continue
-            if f.name == "lever_arm_swapped":
-                if not isinstance(value, (bool, np.bool_)):
-                    raise ConfigError(f"lever_arm_swapped must be true or false, got {value!r}")
-                object.__setattr__(self, f.name, bool(value))
-                continue
-            if f.name == "cam_T_imu_translation_m":
-                if value is not None:
-                    object.__setattr__(self, f.name, _three_finite(f.name, value))
-                continue
-            if f.name == "velocity_frame":
-                if value not in ("body", "level"):
-                    raise ConfigError(f"velocity_frame must be body or level, got {value!r}")
-                continue
-            if f.type in ("int", int):
-                if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-                    raise ConfigError(f"{f.name} must be an integer, got {value!r}")
-                object.__setattr__(self, f.name, int(value))
-            else:
-                if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-                    raise ConfigError(f"{f.name} must be a number, got {value!r}")
-                if not math.isfinite(value):
-                    raise ConfigError(f"{f.name} must be finite, got {value!r}")
-                object.__setattr__(self, f.name, float(value))
-                if f.name != "start_time_s" and value < 0:
-                    raise ConfigError(f"{f.name} must be >= 0, got {value!r}")
+            return
+        if f.name == "velocity_frame":
+            if value not in ("body", "level"):
+                raise ConfigError(f"velocity_frame must be body or level, got {value!r}")
+            return
+        if f.type in ("int", int):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ConfigError(f"{f.name} must be an integer, got {value!r}")
+            object.__setattr__(self, f.name, int(value))
+        else:
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                raise ConfigError(f"{f.name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise ConfigError(f"{f.name} must be finite, got {value!r}")
+            object.__setattr__(self, f.name, float(value))
+            if f.name != "start_time_s" and value < 0:
+                raise ConfigError(f"{f.name} must be >= 0, got {value!r}")
+
+    def _check_ranges(self) -> None:
+        """The fields' joint ranges (a road, a camera, a drive of at least two frames)."""
         if self.seed < 0:
             raise ConfigError(f"seed must be >= 0, got {self.seed}")
         if self.n_frames < 2:
@@ -782,9 +791,41 @@ class _Landmarks:
 
 
 def _static_landmarks(opts: SimulationOptions, path: _Path, rng: np.random.Generator) -> _Landmarks:
+    """The static scene: roadside points (:func:`_roadside_points`) not standing on
+    another stretch of the road, and background points 15-45 m from it."""
     from scipy.spatial import cKDTree  # lazy: keeps `import vislam` light
 
     s_end = float(path.arc[-1])
+    s_all, lat_all, h_all, kind_all = _roadside_points(opts, s_end, rng)
+    keep = (s_all >= 0.0) & (s_all <= s_end)
+    s_all, lat_all, h_all, kind_all = s_all[keep], lat_all[keep], h_all[keep], kind_all[keep]
+    p = path.roadside_point(s_all, lat_all, h_all, opts.ground_below_imu_m)
+
+    # Drop points standing on another stretch of the road (inside corners, crossings).
+    road_xyz = path.position_at(np.arange(0.0, s_end, 0.5))
+    tree = cKDTree(road_xyz[:, :2])
+    dist, _ = tree.query(p[:, :2])
+    keep = dist >= 0.85 * np.abs(lat_all)
+    p, kind_all = p[keep], kind_all[keep]
+
+    bg = _background_points(opts, road_xyz, tree, rng)
+    p = np.concatenate([p, bg])
+    kind_all = np.concatenate([kind_all, np.full(bg.shape[0], _BACKGROUND, dtype=np.int8)])
+    m = p.shape[0]
+    return _Landmarks(
+        p_ref=p,
+        t_ref=np.zeros(m),
+        velocity=np.zeros((m, 3)),
+        kind=kind_all,
+        vehicle=np.full(m, -1, dtype=np.int64),
+        detection_range=rng.uniform(opts.min_detection_range_m, opts.max_range_m, m),
+        max_track=rng.geometric(opts.track_loss_probability, m).astype(np.int64),
+    )
+
+
+def _roadside_points(opts: SimulationOptions, s_end: float, rng: np.random.Generator) -> tuple:
+    """Façades, poles, parked cars and ground points on both sides of the road:
+    (arc length, lateral offset, height, kind) per point."""
     ss, lat, height, kind = [], [], [], []
 
     def add(s_, lat_, h_, k_):
@@ -826,23 +867,13 @@ def _static_landmarks(opts: SimulationOptions, path: _Path, rng: np.random.Gener
         # Ground points (markings, curbs), scattered along the road.
         n = rng.poisson(opts.ground_density_per_m * s_end)
         add(rng.uniform(0.0, s_end, n), side * rng.uniform(1.5, 8.0, n), np.zeros(n), _GROUND)
+    return (np.concatenate(ss) if ss else np.zeros(0), np.concatenate(lat) if lat else np.zeros(0),
+            np.concatenate(height) if height else np.zeros(0),
+            np.concatenate(kind) if kind else np.zeros(0, dtype=np.int8))
 
-    s_all = np.concatenate(ss) if ss else np.zeros(0)
-    lat_all = np.concatenate(lat) if lat else np.zeros(0)
-    h_all = np.concatenate(height) if height else np.zeros(0)
-    kind_all = np.concatenate(kind) if kind else np.zeros(0, dtype=np.int8)
-    keep = (s_all >= 0.0) & (s_all <= s_end)
-    s_all, lat_all, h_all, kind_all = s_all[keep], lat_all[keep], h_all[keep], kind_all[keep]
-    p = path.roadside_point(s_all, lat_all, h_all, opts.ground_below_imu_m)
 
-    # Drop points standing on another stretch of the road (inside corners, crossings).
-    road_xyz = path.position_at(np.arange(0.0, s_end, 0.5))
-    tree = cKDTree(road_xyz[:, :2])
-    dist, _ = tree.query(p[:, :2])
-    keep = dist >= 0.85 * np.abs(lat_all)
-    p, kind_all = p[keep], kind_all[keep]
-
-    # Background: uniform over the area 15-45 m from the road (cells of 45 m along it).
+def _background_points(opts: SimulationOptions, road_xyz: np.ndarray, tree, rng: np.random.Generator) -> np.ndarray:
+    """Background: uniform over the area 15-45 m from the road (cells of 45 m along it), (n, 3)."""
     cell = 45.0
     cells = np.unique(np.floor(road_xyz[:, :2] / cell).astype(np.int64), axis=0)
     cells = np.unique((cells[:, None, :] + np.array([[i, j] for i in (-1, 0, 1) for j in (-1, 0, 1)])).reshape(-1, 2),
@@ -852,19 +883,7 @@ def _static_landmarks(opts: SimulationOptions, path: _Path, rng: np.random.Gener
     height = rng.uniform(0.0, 12.0, xy.shape[0])
     dist, nearest = tree.query(xy)
     ok = (dist >= 15.0) & (dist <= 45.0)
-    bg = np.column_stack([xy[ok], road_xyz[nearest[ok], 2] - opts.ground_below_imu_m + height[ok]])
-    p = np.concatenate([p, bg])
-    kind_all = np.concatenate([kind_all, np.full(bg.shape[0], _BACKGROUND, dtype=np.int8)])
-    m = p.shape[0]
-    return _Landmarks(
-        p_ref=p,
-        t_ref=np.zeros(m),
-        velocity=np.zeros((m, 3)),
-        kind=kind_all,
-        vehicle=np.full(m, -1, dtype=np.int64),
-        detection_range=rng.uniform(opts.min_detection_range_m, opts.max_range_m, m),
-        max_track=rng.geometric(opts.track_loss_probability, m).astype(np.int64),
-    )
+    return np.column_stack([xy[ok], road_xyz[nearest[ok], 2] - opts.ground_below_imu_m + height[ok]])
 
 
 def _vehicle_landmarks(opts: SimulationOptions, path: _Path, ego_arc: np.ndarray, timestamps: np.ndarray,
