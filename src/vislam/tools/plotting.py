@@ -164,42 +164,8 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
     ax = fig.add_subplot(grid[0])
     _side_view(fig.add_subplot(grid[1]), [(c.world_T_imu, c.color, c.linestyle, c.linewidth, 1.0) for c in curves])
 
-    handles: list = []
-    p = np.zeros((0, 2))
-    if landmarks is not None and len(landmarks):
-        p = np.asarray(landmarks.p_lm_in_world, dtype=np.float64)[:, :2]
-        rejected = np.asarray(landmarks.status) != 0
-        ok = ~rejected
-        n_ok, n_rej = int(ok.sum()), int(rejected.sum())
-        # small markers with alpha: thousands of points stay readable where they overlap
-        size = 10.0 if n_ok <= 500 else 5.0 if n_ok <= 2000 else 2.5
-        ax.scatter(p[ok, 0], p[ok, 1], s=size, c="tab:green", alpha=0.5, linewidths=0, rasterized=True, zorder=1)
-        handles.append(Line2D([], [], ls="none", marker="o", ms=4, color="tab:green", alpha=0.8,
-                              label=f"landmarks ({n_ok})"))
-        if n_rej:  # faint, under the kept ones: they must not hide the map
-            ax.scatter(p[rejected, 0], p[rejected, 1], s=10 if n_rej <= 200 else 5, marker="x", c="tab:red",
-                       alpha=0.25, linewidths=0.6, rasterized=True, zorder=0.5)
-            handles.append(Line2D([], [], ls="none", marker="x", ms=5, color="tab:red", alpha=0.5,
-                                  label=f"rejected landmarks ({n_rej})"))
-    curve_handles: list = []
-    traj_xy = []
-    for c in curves:
-        xy = np.asarray(c.world_T_imu)[:, :2, 3]
-        if xy.shape[0] == 0:
-            continue
-        traj_xy.append(xy)
-        (line,) = ax.plot(xy[:, 0], xy[:, 1], color=c.color, ls=c.linestyle, lw=c.linewidth, zorder=c.zorder,
-                          label=c.label)
-        curve_handles.append(line)
-    # start and end of the first curve that asks for it (all curves start at the origin)
-    marked = [c for c in curves if c.mark_ends and len(c.world_T_imu)]
-    if marked:
-        xy = np.asarray(marked[0].world_T_imu)[:, :2, 3]
-        ax.plot(*xy[0], marker="o", ms=9, mfc="white", mec="black", mew=1.8, ls="none", zorder=5)
-        ax.plot(*xy[-1], marker="s", ms=8, mfc="black", mec="black", ls="none", zorder=5)
-        curve_handles.append(Line2D([], [], ls="none", marker="o", ms=8, mfc="white", mec="black", mew=1.8,
-                                    label="start"))
-        curve_handles.append(Line2D([], [], ls="none", marker="s", ms=7, mfc="black", mec="black", label="end"))
+    p, handles = _map_landmarks(ax, landmarks)
+    curve_handles, traj_xy = _map_curves(ax, curves)
     handles = curve_handles + handles
 
     _label_map_axes(fig, ax, title, subtitle)
@@ -226,6 +192,58 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
     with atomic_path(Path(path), suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=DPI)
     return {"xlim": tuple(map(float, xlim)), "ylim": tuple(map(float, ylim)), "landmarks_outside_view": n_outside}
+
+
+def _map_landmarks(ax, landmarks) -> tuple[np.ndarray, list]:
+    """The map's landmarks (green dots; rejected ones faint red crosses under them):
+    (xy of every landmark, legend handles)."""
+    from matplotlib.lines import Line2D
+
+    handles: list = []
+    p = np.zeros((0, 2))
+    if landmarks is not None and len(landmarks):
+        p = np.asarray(landmarks.p_lm_in_world, dtype=np.float64)[:, :2]
+        rejected = np.asarray(landmarks.status) != 0
+        ok = ~rejected
+        n_ok, n_rej = int(ok.sum()), int(rejected.sum())
+        # small markers with alpha: thousands of points stay readable where they overlap
+        size = 10.0 if n_ok <= 500 else 5.0 if n_ok <= 2000 else 2.5
+        ax.scatter(p[ok, 0], p[ok, 1], s=size, c="tab:green", alpha=0.5, linewidths=0, rasterized=True, zorder=1)
+        handles.append(Line2D([], [], ls="none", marker="o", ms=4, color="tab:green", alpha=0.8,
+                              label=f"landmarks ({n_ok})"))
+        if n_rej:  # faint, under the kept ones: they must not hide the map
+            ax.scatter(p[rejected, 0], p[rejected, 1], s=10 if n_rej <= 200 else 5, marker="x", c="tab:red",
+                       alpha=0.25, linewidths=0.6, rasterized=True, zorder=0.5)
+            handles.append(Line2D([], [], ls="none", marker="x", ms=5, color="tab:red", alpha=0.5,
+                                  label=f"rejected landmarks ({n_rej})"))
+    return p, handles
+
+
+def _map_curves(ax, curves) -> tuple[list, list]:
+    """The trajectories, with start and end of the first curve that asks for it (all
+    curves start at the origin): (legend handles, xy of each curve drawn)."""
+    from matplotlib.lines import Line2D
+
+    curve_handles: list = []
+    traj_xy = []
+    for c in curves:
+        xy = np.asarray(c.world_T_imu)[:, :2, 3]
+        if xy.shape[0] == 0:
+            continue
+        traj_xy.append(xy)
+        (line,) = ax.plot(xy[:, 0], xy[:, 1], color=c.color, ls=c.linestyle, lw=c.linewidth, zorder=c.zorder,
+                          label=c.label)
+        curve_handles.append(line)
+    # start and end of the first curve that asks for it (all curves start at the origin)
+    marked = [c for c in curves if c.mark_ends and len(c.world_T_imu)]
+    if marked:
+        xy = np.asarray(marked[0].world_T_imu)[:, :2, 3]
+        ax.plot(*xy[0], marker="o", ms=9, mfc="white", mec="black", mew=1.8, ls="none", zorder=5)
+        ax.plot(*xy[-1], marker="s", ms=8, mfc="black", mec="black", ls="none", zorder=5)
+        curve_handles.append(Line2D([], [], ls="none", marker="o", ms=8, mfc="white", mec="black", mew=1.8,
+                                    label="start"))
+        curve_handles.append(Line2D([], [], ls="none", marker="s", ms=7, mfc="black", mec="black", label="end"))
+    return curve_handles, traj_xy
 
 
 @dataclass(frozen=True)
