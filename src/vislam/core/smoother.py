@@ -655,14 +655,7 @@ class SmootherFilter(StepwiseFilter):
 
         A landmark that fails both is rejected and all its factors still in the window
         are removed with the next update: they have been pulling the poses."""
-        seen, todo = set(), []
-        for lm in lms:
-            if lm.rejected or lm.key in seen:
-                continue
-            seen.add(lm.key)
-            obs = [e for e in lm.obs if e[4] and e[2] >= 0 and e[0] in self._pose_stamp]
-            if len(obs) >= 3:
-                todo.append((lm, obs))
+        todo = self._drift_candidates(lms)
         if len(todo) < _MIN_DRIFT_POPULATION:
             return
         n = len(todo)
@@ -700,14 +693,31 @@ class SmootherFilter(StepwiseFilter):
             drift_log.extend(zip([lm.id for lm, _ in todo], cnt.tolist(), (stat / max(typical, 1e-12)).tolist(),
                                  speed.tolist(), [self.frame_index] * n))
         for j in np.flatnonzero(moving).tolist():
-            lm = todo[j][0]
-            lm.rejected = True
-            self.stats.landmarks_rejected += 1
-            self.stats.landmarks_moving += 1
-            self._remove_factors(lm, list(lm.obs), remove)
-            if self._tracks.get(lm.id) == lm.key:
-                del self._tracks[lm.id]
-                self._rejected_ids.add(lm.id)
+            self._reject_moving(todo[j][0], remove)
+
+    def _drift_candidates(self, lms: list) -> list:
+        """(landmark, its checked, kept observations in the window) of the distinct,
+        not rejected landmarks of ``lms`` with at least three of them."""
+        seen, todo = set(), []
+        for lm in lms:
+            if lm.rejected or lm.key in seen:
+                continue
+            seen.add(lm.key)
+            obs = [e for e in lm.obs if e[4] and e[2] >= 0 and e[0] in self._pose_stamp]
+            if len(obs) >= 3:
+                todo.append((lm, obs))
+        return todo
+
+    def _reject_moving(self, lm: _Landmark, remove: list) -> None:
+        """A landmark the drift test found moving: rejected, its factors in the window
+        removed with the next update, its track (if in progress) ended."""
+        lm.rejected = True
+        self.stats.landmarks_rejected += 1
+        self.stats.landmarks_moving += 1
+        self._remove_factors(lm, list(lm.obs), remove)
+        if self._tracks.get(lm.id) == lm.key:
+            del self._tracks[lm.id]
+            self._rejected_ids.add(lm.id)
 
     def _apparent_speed(self, world_T_imu, p, frames, r, front, starts) -> np.ndarray:
         """(n,) speed (m/s) of n landmarks taken as points moving at constant velocity:
