@@ -6,9 +6,10 @@ bookkeeping and advance one frame at a time, as a robot (or a ROS node) delivers
 * :class:`SlamFilter` — the joint EKF over pose and landmarks (III-C).
 
 Each implements the stepwise filter contract (:class:`vislam.core.contract.StepwiseFilter`,
-whose module docstring is the written contract). Each has ``predict(dt_s, linear_velocity, angular_velocity)`` (the IMU sample of the
-interval ending at the new frame), ``update(ids, pixels)`` (the stereo observations of
-the new frame) and ``step(frame)`` (both; the first frame has no prediction), and read
+whose module docstring is the written contract): ``predict(dt_s, linear_velocity,
+angular_velocity)`` (the IMU sample of the interval ending at the new frame),
+``update(ids, pixels)`` (the stereo observations of the new frame) and ``step(frame)``
+(both; the first frame has no prediction), ``drain()`` after the last frame, and read
 access to the current estimate: ``world_T_imu`` (4x4), ``pose_covariance`` (6x6, left
 perturbation of ``imu_T_world`` in (v, ω) order), the landmarks in the state and the
 frozen map, the statistics of the last frame (:class:`FrameStats`) and of the run
