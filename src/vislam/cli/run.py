@@ -495,24 +495,20 @@ def run(args) -> int:
     from vislam.core.results import run_warnings
     from vislam.tools.comparison import evaluate_run, injected_noise_record, stage_evaluation
     from vislam.tools.config import load_known_poses
-    from vislam.tools.outputs import OutputStage, process_start_time, write_run_outputs
+    from vislam.tools.outputs import OutputStage, display_name, method_title, process_start_time, write_run_outputs
 
     start_time = process_start_time() or _COMMAND_START
-    if args.poses and args.mode != "mapping":
-        raise ConfigError(f"--poses is only used by --mode mapping (got --mode {args.mode})")
-    if args.refine and args.mode != "smoother":
-        raise ConfigError(f"--refine is only used by --mode smoother (got --mode {args.mode})")
-    for flag, value in (("--imu-bias-sigma", args.imu_bias_sigma),
-                        ("--imu-bias-time-constant", args.imu_bias_time_constant)):
-        if value is not None and args.mode != "slam":
-            raise ConfigError(f"{flag} is only used by --mode slam (got --mode {args.mode})")
+    for flag, given, needs in (("--poses", bool(args.poses), "mapping"), ("--refine", bool(args.refine), "smoother"),
+                               ("--imu-bias-sigma", args.imu_bias_sigma is not None, "slam"),
+                               ("--imu-bias-time-constant", args.imu_bias_time_constant is not None, "slam")):
+        if given and args.mode != needs:
+            raise ConfigError(f"{flag} is only used by --mode {needs} (got --mode {args.mode})")
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
-    data = Path(args.data)
     sequence, tracking = load_data(args, args.out)
     poses = load_known_poses(args.poses, sequence) if args.poses else None
     gt, gt_info = ground_truth_from_args(args, sequence)  # checked before any work
-    dataset = {"name": sequence.name, "path": str(data.resolve()), "frames": sequence.n_frames,
+    dataset = {"name": sequence.name, "path": str(Path(args.data).resolve()), "frames": sequence.n_frames,
                "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s,
                "cam_T_imu": sequence.cam_T_imu.tolist()}
     if tracking is not None:
@@ -536,8 +532,7 @@ def run(args) -> int:
         sequence = apply_corrections(sequence, options)  # a no-op if the estimators apply them again
 
     stage = OutputStage(args.out)
-    progress, close = None, lambda: None
-    recorder = None
+    close, recorder = (lambda: None), None
     try:
         with stage:
             recorder = open_rerun_recorder(args, sequence)
@@ -552,8 +547,6 @@ def run(args) -> int:
                 extra["timing"] = result.extra["timing"]
             gt_poses = None
             if gt is not None:
-                from vislam.tools.outputs import display_name, method_title
-
                 evaluation = evaluate_run(result, gt, sequence)
                 gt_poses = evaluation.gt_world_T_imu  # drawn in the figure
                 extra["evaluation"] = stage_evaluation(

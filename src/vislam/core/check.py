@@ -89,7 +89,8 @@ from vislam.core.options import FilterOptions
 from vislam.core.rigs import match_known_rig
 from vislam.core.sequence import Sequence, StereoObservations
 
-__all__ = ["CheckOptions", "Finding", "CheckResult", "check_sequence", "estimate_white_noise", "estimate_pixel_noise",
+__all__ = ["CheckOptions", "Finding", "CheckResult", "Analysis", "ANALYSES", "check_sequence", "estimate_white_noise",
+           "estimate_pixel_noise",
            "in_sync_mask", "usable_observations",
            "SEVERITIES",
            "FINDING_CODES"]
@@ -915,408 +916,542 @@ def _fmt_vec(v, spec: str = ".3g") -> str:
     return "(" + ", ".join(format(float(x), spec) for x in v) + ")"
 
 
+@dataclass
+class Analysis:
+    """What one analysis of :func:`check_sequence` found: its estimates (JSON-ready), its
+    findings, the FilterOptions values it suggests and notes on what it could not do."""
+
+    estimates: dict[str, Any] = field(default_factory=dict)
+    findings: list[Finding] = field(default_factory=list)
+    suggested: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+
+class _Check:
+    """One run of :func:`check_sequence`: the inputs, what the analyses so far found
+    (merged, in order) and the values they hand on to the later ones (the sequence in
+    seconds, the velocities as the reprojection analyses see them, the track pairs, the
+    fitted rotation, bias, association)."""
+
+    def __init__(self, sequence: Sequence, opts: CheckOptions, base: FilterOptions):
+        self.sequence, self.opts, self.base = sequence, opts, base
+        self.rng = np.random.default_rng(opts.seed)
+        self.est: dict[str, Any] = {}
+        self.suggested: dict[str, Any] = {}
+        self.findings: list[Finding] = []
+        self.notes: list[str] = []
+        self.T = sequence.n_frames
+        self.ts = sequence.timestamps_s
+        self.u = sequence.velocities()
+        self.dt = float(np.median(np.diff(self.ts))) if self.T > 1 else 0.0
+        self.C0 = np.array(sequence.cam_T_imu, dtype=np.float64)
+        self.scale = opts.loss_scale_px
+        self.shift = 1
+        self.noisy = False
+        self.sv = self.sw = np.full(3, np.nan)
+
+    def merge(self, found: Analysis) -> None:
+        self.est.update(found.estimates)
+        self.findings.extend(found.findings)
+        self.suggested.update(found.suggested)
+        self.notes.extend(found.notes)
+
+
 def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
                    filter_options: FilterOptions | None = None) -> CheckResult:
-    """Analyse ``sequence`` (see the module docstring). ``filter_options`` is the
-    reference the noise is compared with (default: FilterOptions())."""
+    """Analyse ``sequence`` (see the module docstring): the analyses of :data:`ANALYSES`
+    in order, each adding its estimates, findings and suggestions. ``filter_options`` is
+    the reference the noise is compared with (default: FilterOptions())."""
     import time
 
     t_start = time.perf_counter()
-    opts = options or CheckOptions()
-    base = filter_options or FilterOptions()
-    rng = np.random.default_rng(opts.seed)
-    findings: list[Finding] = []
-    suggested: dict[str, Any] = {}
-    est: dict[str, Any] = {}
-    notes: list[str] = []
-    obs = sequence.observations
-    T = sequence.n_frames
-    ts = sequence.timestamps_s
-    u = sequence.velocities()
-    dt = float(np.median(np.diff(ts))) if T > 1 else 0.0
+    run = _Check(sequence, options or CheckOptions(), filter_options or FilterOptions())
+    for _name, analysis in ANALYSES:
+        run.merge(analysis(run))
+    findings = run.findings
+    order = {c: i for i, c in enumerate(FINDING_CODES)}
+    findings.sort(key=lambda f: order.get(f.code, len(order)))
+    elapsed = time.perf_counter() - t_start
+    logger.info("checked %s in %.1f s: %s", run.sequence.name, elapsed,
+                ", ".join(f"{f.code} {f.severity}" for f in findings if f.severity != "OK") or "all OK")
+    return CheckResult(name=run.sequence.name, source=run.sequence.source, estimates=run.est, findings=findings,
+                       suggested=run.suggested, elapsed_s=elapsed, notes=run.notes)
 
-    # --- the timestamps' unit: a camera's frame interval is 5 ms to 1 s ------------------
-    factor, finding = _timestamp_unit(dt, opts)
-    findings.append(finding)
-    est["frame_interval_s"] = dt * factor
-    est["timestamp_scale"] = factor
-    if factor != 1.0:  # the analyses below see seconds
-        suggested["timestamp_scale"] = factor
-        sequence = sequence.replace(timestamps_s=sequence.timestamps_s * factor)
-        ts = sequence.timestamps_s
-        dt *= factor
 
-    # --- what `info` reports ----------------------------------------------------------
+def _analyse_timestamps(run: _Check) -> Analysis:
+    """The timestamps' unit: a camera's frame interval is 5 ms to 1 s (the later
+    analyses see seconds)."""
+    factor, finding = _timestamp_unit(run.dt, run.opts)
+    out = Analysis({"frame_interval_s": run.dt * factor, "timestamp_scale": factor}, [finding])
+    if factor != 1.0:
+        out.suggested["timestamp_scale"] = factor
+        run.sequence = run.sequence.replace(timestamps_s=run.sequence.timestamps_s * factor)
+        run.ts = run.sequence.timestamps_s
+        run.dt *= factor
+    return out
+
+
+def _analyse_observations(run: _Check) -> Analysis:
+    """What ``vislam info`` reports: exact repeats and non-positive disparities."""
+    obs = run.sequence.observations
     disparity = obs.pixels[:, 0] - obs.pixels[:, 2]
-    repeated, evidence = obs.repeat_evidence(sequence.repeat_motion())
-    est["observations"] = {"total": obs.n_observations, "repeated": int(np.count_nonzero(repeated)),
-                           "repeated_share": float(np.mean(repeated)) if obs.n_observations else 0.0,
-                           "repeat_evidence": evidence,
-                           "non_positive_disparity": int(np.count_nonzero(disparity <= 0))}
+    repeated, evidence = obs.repeat_evidence(run.sequence.repeat_motion())
+    return Analysis({"observations": {
+        "total": obs.n_observations, "repeated": int(np.count_nonzero(repeated)),
+        "repeated_share": float(np.mean(repeated)) if obs.n_observations else 0.0, "repeat_evidence": evidence,
+        "non_positive_disparity": int(np.count_nonzero(disparity <= 0))}})
 
-    # --- noise --------------------------------------------------------------------------
+
+def _analyse_imu_noise(run: _Check) -> Analysis:
+    """IMU white noise per axis against the filter's noise model."""
+    u, opts, base = run.u, run.opts, run.base
     sv, sv_se = estimate_white_noise(u[:, :3])
     sw, sw_se = estimate_white_noise(u[:, 3:])
-    est["imu_noise"] = {"velocity_mps": sv.tolist(), "velocity_mps_se": sv_se.tolist(),
-                        "angular_radps": sw.tolist(), "angular_radps_se": sw_se.tolist(),
-                        "method": "variogram nugget (quadratic fit of lags 1-6), per axis"}
+    run.sv, run.sw = sv, sw
+    out = Analysis({"imu_noise": {"velocity_mps": sv.tolist(), "velocity_mps_se": sv_se.tolist(),
+                                  "angular_radps": sw.tolist(), "angular_radps_se": sw_se.tolist(),
+                                  "method": "variogram nugget (quadratic fit of lags 1-6), per axis"}})
     default_v = base.velocity_noise_per_axis
     default_w = base.angular_noise_per_axis
-    noisy = bool(np.any(sv > opts.noise_factor_warn * default_v) or np.any(sw > opts.noise_factor_warn * default_w))
-    sug_v = np.maximum(np.nan_to_num(sv), default_v)
-    sug_w = np.maximum(np.nan_to_num(sw), default_w)
-    if noisy:
-        suggested["velocity_noise_mps"] = [float(f"{x:.3g}") for x in sug_v]
-        suggested["angular_noise_radps"] = [float(f"{x:.3g}") for x in sug_w]
-        findings.append(Finding("noise", "WARN",
-                                f"IMU white noise per axis {_fmt_vec(sv)} m/s and {_fmt_vec(sw)} rad/s is far above "
-                                f"the filter's {_fmt_vec(default_v)} m/s, {_fmt_vec(default_w)} rad/s: the filter "
-                                f"would trust the IMU too much and reject landmarks; run with the suggested noise"))
+    run.noisy = bool(np.any(sv > opts.noise_factor_warn * default_v) or np.any(sw > opts.noise_factor_warn * default_w))
+    if run.noisy:
+        out.suggested["velocity_noise_mps"] = [float(f"{x:.3g}") for x in np.maximum(np.nan_to_num(sv), default_v)]
+        out.suggested["angular_noise_radps"] = [float(f"{x:.3g}") for x in np.maximum(np.nan_to_num(sw), default_w)]
+        out.findings.append(Finding(
+            "noise", "WARN", f"IMU white noise per axis {_fmt_vec(sv)} m/s and {_fmt_vec(sw)} rad/s is far above "
+                             f"the filter's {_fmt_vec(default_v)} m/s, {_fmt_vec(default_w)} rad/s: the filter "
+                             f"would trust the IMU too much and reject landmarks; run with the suggested noise"))
     else:
-        findings.append(Finding("noise", "OK",
-                                f"IMU white noise per axis {_fmt_vec(sv)} m/s and {_fmt_vec(sw)} rad/s is within "
-                                f"{opts.noise_factor_warn:g}x of the filter's noise; nothing to do"))
+        out.findings.append(Finding(
+            "noise", "OK", f"IMU white noise per axis {_fmt_vec(sv)} m/s and {_fmt_vec(sw)} rad/s is within "
+                           f"{opts.noise_factor_warn:g}x of the filter's noise; nothing to do"))
+    return out
 
-    # --- gyro bias: roll/pitch means (ground vehicle) -----------------------------------
-    duration = max(sequence.duration_s, 1e-9)
+
+def _analyse_gyro_bias(run: _Check) -> Analysis:
+    """Gyro bias from the roll/pitch-rate means (a ground vehicle ends as level as it
+    started); then the velocities the reprojection analyses see: without the bias found,
+    in the body frame (levelled velocities turned by the grade they show)."""
+    opts, u = run.opts, run.u
+    duration = max(run.sequence.duration_s, 1e-9)
     mean_w = np.mean(u[:, 3:], axis=0)
     # a 3° change of roll or pitch over the drive, and the white noise
-    mean_se = np.sqrt((np.radians(3.0) / duration) ** 2 + np.nan_to_num(sw) ** 2 / max(T, 1))
-    est["angular_rate_mean_radps"] = mean_w.tolist()
-    est["angular_rate_mean_radps_se"] = mean_se.tolist()
+    mean_se = np.sqrt((np.radians(3.0) / duration) ** 2 + np.nan_to_num(run.sw) ** 2 / max(run.T, 1))
     # The roll/pitch means are the estimate: the visual fit (fit_gyro_bias) is recorded
     # for information only; on the reference files it finds yaw "biases" of 0.003-0.012
     # rad/s that make dead reckoning far worse (it absorbs other model errors).
     b_est = np.array([mean_w[0], mean_w[1], np.nan])
     b_se = np.array([mean_se[0], mean_se[1], np.nan])
-    est["gyro_bias_radps"] = b_est.tolist()
-    est["gyro_bias_radps_se"] = b_se.tolist()
+    out = Analysis({"angular_rate_mean_radps": mean_w.tolist(), "angular_rate_mean_radps_se": mean_se.tolist(),
+                    "gyro_bias_radps": b_est.tolist(), "gyro_bias_radps_se": b_se.tolist()})
     significant = np.isfinite(b_est) & (np.abs(b_est) > np.maximum(opts.bias_warn_radps, 3 * np.nan_to_num(b_se)))
+    averages = f"the roll and pitch rates average to {_fmt_vec(b_est[:2])} ± {_fmt_vec(b_se[:2], '.1g')} rad/s"
     if np.any(significant):
-        b_sug = np.where(significant, b_est, 0.0)
-        suggested["gyro_bias_radps"] = [float(f"{x:.3g}") for x in b_sug]
-        findings.append(Finding("imu-bias", "WARN",
-                                f"the roll and pitch rates average to {_fmt_vec(b_est[:2])} ± "
-                                f"{_fmt_vec(b_se[:2], '.1g')} rad/s over the drive, which no ground vehicle does: a "
-                                f"gyro bias, dead reckoning tilts and climbs; run with the suggested gyro_bias_radps "
-                                f"(a yaw bias is not observable this way)"))
+        out.suggested["gyro_bias_radps"] = [float(f"{x:.3g}") for x in np.where(significant, b_est, 0.0)]
+        out.findings.append(Finding("imu-bias", "WARN",
+                                    f"{averages} over the drive, which no ground vehicle does: a gyro bias, dead "
+                                    f"reckoning tilts and climbs; run with the suggested gyro_bias_radps (a yaw bias "
+                                    f"is not observable this way)"))
+        u = _debiased(u, np.asarray(out.suggested["gyro_bias_radps"]))
     else:
-        findings.append(Finding("imu-bias", "OK",
-                                f"the roll and pitch rates average to {_fmt_vec(b_est[:2])} ± "
-                                f"{_fmt_vec(b_se[:2], '.1g')} rad/s: no gyro bias beyond {opts.bias_warn_radps:g} "
-                                f"rad/s; nothing to do"))
+        out.findings.append(Finding("imu-bias", "OK", f"{averages}: no gyro bias beyond {opts.bias_warn_radps:g} "
+                                                      f"rad/s; nothing to do"))
+    run.u = level_velocities_to_body(u) if run.base.velocity_frame == "level" else u
+    return out
 
-    # the reprojection analyses see the velocities without the bias found, in the body
-    # frame (levelled velocities turned by the grade they show, see level_velocities_to_body)
-    if "gyro_bias_radps" in suggested:
-        u = _debiased(u, np.asarray(suggested["gyro_bias_radps"]))
-    if base.velocity_frame == "level":
-        u = level_velocities_to_body(u)
 
-    # --- reprojection-based analyses -------------------------------------------------
-    # all predictions for the association and the time offset (cheap: a few cost
-    # evaluations), a random subset for the rotation fit (many evaluations)
-    all_pairs = _TrackPairs(sequence, opts.window, opts.max_depth_m, None, rng)
-    pairs = all_pairs.subset(opts.max_pairs, rng)
-    est["prediction_pairs"] = all_pairs.n_pairs
-    C0 = np.array(sequence.cam_T_imu, dtype=np.float64)
-    scale = opts.loss_scale_px
-    shift = 1
-    bias = np.zeros(3)
-    time_offset = 0.0
-    if pairs.n_pairs >= 30:
-        r_before = pairs.residuals(pairs.relative_imu(ts, sequence.velocities(), 1), C0)  # the data as recorded
-        est["reprojection_before_px"] = _percentiles(_left_distance(r_before))
-        # the loss scale follows the residual level, so that most residuals are in the
-        # quadratic part of the Cauchy loss (its Gauss-Newton covariance is then honest)
-        scale = max(scale, 1.5 * float(np.median(np.linalg.norm(r_before, axis=1))))
+def _analyse_track_pairs(run: _Check) -> Analysis:
+    """The predictions of the reprojection analyses: all for the association and the
+    time offset (cheap: a few cost evaluations), a random subset for the rotation fit."""
+    run.all_pairs = _TrackPairs(run.sequence, run.opts.window, run.opts.max_depth_m, None, run.rng)
+    run.pairs = run.all_pairs.subset(run.opts.max_pairs, run.rng)
+    return Analysis({"prediction_pairs": run.all_pairs.n_pairs})
 
-        # rotation (+ bias): best start, then a robust fit. The start with the most
-        # landmarks whose predictions reproject within moving_landmark_px (median): a
-        # consensus of landmarks rather than of predictions, because with traffic
-        # alongside most predictions may belong to a few long-tracked vehicles (sparse
-        # 0042: 70 % of the predictions, 43 % of the landmarks), which a wrong velocity
-        # factor would make look static. Ties: predictions within, then the robust cost.
-        # The linear velocities' scale is searched too (a unit mistake, km/h stored as
-        # m/s, would otherwise look like a rotation error): a log grid of factors.
-        inlier_px = opts.moving_landmark_px if opts.moving_landmark_px is not None else 12.0
-        starts = [(phi0, k) for k in _scale_grid(opts.velocity_scale_range) for phi0 in _starts()]
-        few = pairs.subset(opts.start_pairs, np.random.default_rng(opts.seed))  # the search: a subset suffices
-        rel_few = few.relative_imu(ts, u, 1)
-        costs = []
-        for phi0, k in starts:
-            rel_k = rel_few if k == 1.0 else few.relative_imu(ts, _scaled(u, k), 1)
-            r0 = few.residuals(rel_k, _turned(C0, phi0))
-            d0 = _left_distance(r0)
-            costs.append((-_landmark_inliers(few.landmark, d0, inlier_px), -int(np.count_nonzero(d0 <= inlier_px)),
-                          float(np.sum(_cauchy_cost(r0, scale)))))
-        phi_start, k_start = starts[min(range(len(costs)), key=costs.__getitem__)]
-        # the residuals the loss scale follows: the recorded data's, or at the factor found
-        u_start, r_scale = u, r_before
-        if k_start != 1.0:
-            u_start = _scaled(u, k_start)
-            r_scale = pairs.residuals(pairs.relative_imu(ts, u_start, 1), _turned(C0, phi_start))
-            scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_scale, axis=1))))
 
-        # landmarks that do not follow the world's motion (traffic, mismatched tracks),
-        # judged at the best start: left out of the fits
-        moving = _moving_landmarks(all_pairs, ts, u_start, C0, phi_start, opts.moving_landmark_px)
-        est["moving_landmarks"] = moving
-        if moving["landmarks"]:
-            ids = np.asarray(moving["landmark_ids"])
-            keep = ~np.isin(pairs.landmark, ids)
-            keep_all = ~np.isin(all_pairs.landmark, ids)
-            if np.count_nonzero(keep) >= 30:
-                scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(r_scale[keep], axis=1))))
-                pairs, all_pairs = pairs.select(keep), all_pairs.select(keep_all)
-                est["reprojection_before_static_px"] = _percentiles(_left_distance(r_before[keep]))
-            else:
-                moving["kept"] = "fewer than 30 predictions would remain: every landmark kept"
-        x, cov, _, (log_k, log_k_var) = _fit_rotation_and_bias(pairs, ts, u, C0, 1, scale, phi_start,
-                                                               opts.fit_gyro_bias, fit_scale=True,
-                                                               log_scale0=math.log(k_start))
-        # the linear velocities' factor: everything below sees the velocities times it
-        k_hat = math.exp(log_k)
-        k_se = k_hat * math.sqrt(log_k_var) if math.isfinite(log_k_var) and log_k_var >= 0 else None
-        k_se = math.hypot(k_se, opts.velocity_scale_floor) if k_se is not None else None
-        est["velocity_scale"] = k_hat
-        est["velocity_scale_se"] = k_se
-        u = _scaled(u, k_hat)
+def _analyse_conventions(run: _Check) -> Analysis:
+    """The reprojection analyses in order (:data:`CONVENTION_ANALYSES`), or, with fewer
+    than 30 predictions, WARN findings saying they were not checked."""
+    if run.pairs.n_pairs >= 30:
+        out = Analysis()
+        for _name, analysis in CONVENTION_ANALYSES:
+            found = analysis(run)
+            run.merge(found)  # the later steps read what the earlier ones found
+        return out
+    n = run.pairs.n_pairs
+    out = Analysis({"imu_camera_rotation_error_deg": None, "conventions_checked": False})
+    out.notes.append(f"only {n} track predictions: rotation, translation, association and time offset not checked")
+    for code in ("imu-camera-rotation", "imu-camera-translation", "velocity-association", "velocity-scale",
+                 "time-offset"):
+        out.findings.append(Finding(code, "WARN", f"not enough in-sync stereo tracks ({n} predictions) "
+                                                  f"to check this; the recording's conventions are assumed"))
+    return out
 
-        # association: the shift with the smallest cost at that rotation and bias
-        def shifted_cost(s: int, phi: np.ndarray, b: np.ndarray) -> np.ndarray:
-            rel = all_pairs.relative_imu(ts, _debiased(u, b), s)
-            return _cauchy_cost(all_pairs.residuals(rel, _turned(C0, phi)), scale)
 
-        shift_costs = {s: shifted_cost(s, x[:3], x[3:]) for s in (-1, 0, 1, 2, 3)}
+def _analyse_best_start(run: _Check) -> Analysis:
+    """The start of the rotation fit: rotation and speed factor with the most landmarks
+    whose predictions reproject within moving_landmark_px (median)."""
+    opts, pairs, ts, u, C0 = run.opts, run.pairs, run.ts, run.u, run.C0
+    run.r_before = pairs.residuals(pairs.relative_imu(ts, run.sequence.velocities(), 1), C0)  # the data as recorded
+    out = Analysis({"reprojection_before_px": _percentiles(_left_distance(run.r_before))})
+    # the loss scale follows the residual level, so that most residuals are in the
+    # quadratic part of the Cauchy loss (its Gauss-Newton covariance is then honest)
+    run.scale = max(run.scale, 1.5 * float(np.median(np.linalg.norm(run.r_before, axis=1))))
+    # A consensus of landmarks rather than of predictions, because with traffic
+    # alongside most predictions may belong to a few long-tracked vehicles (sparse
+    # 0042: 70 % of the predictions, 43 % of the landmarks), which a wrong velocity
+    # factor would make look static. Ties: predictions within, then the robust cost.
+    # The linear velocities' scale is searched too (a unit mistake, km/h stored as
+    # m/s, would otherwise look like a rotation error): a log grid of factors.
+    inlier_px = opts.moving_landmark_px if opts.moving_landmark_px is not None else 12.0
+    starts = [(phi0, k) for k in _scale_grid(opts.velocity_scale_range) for phi0 in _starts()]
+    few = pairs.subset(opts.start_pairs, np.random.default_rng(opts.seed))  # the search: a subset suffices
+    rel_few = few.relative_imu(ts, u, 1)
+    costs = []
+    for phi0, k in starts:
+        rel_k = rel_few if k == 1.0 else few.relative_imu(ts, _scaled(u, k), 1)
+        r0 = few.residuals(rel_k, _turned(C0, phi0))
+        d0 = _left_distance(r0)
+        costs.append((-_landmark_inliers(few.landmark, d0, inlier_px), -int(np.count_nonzero(d0 <= inlier_px)),
+                      float(np.sum(_cauchy_cost(r0, run.scale)))))
+    run.phi_start, run.k_start = starts[min(range(len(costs)), key=costs.__getitem__)]
+    # the residuals the loss scale follows: the recorded data's, or at the factor found
+    run.u_start, run.r_scale = u, run.r_before
+    if run.k_start != 1.0:
+        run.u_start = _scaled(u, run.k_start)
+        run.r_scale = pairs.residuals(pairs.relative_imu(ts, run.u_start, 1), _turned(C0, run.phi_start))
+        run.scale = max(opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(run.r_scale, axis=1))))
+    return out
+
+
+def _analyse_moving_landmarks(run: _Check) -> Analysis:
+    """Landmarks that do not follow the world's motion (traffic, mismatched tracks),
+    judged at the best start: left out of the fits."""
+    moving = _moving_landmarks(run.all_pairs, run.ts, run.u_start, run.C0, run.phi_start, run.opts.moving_landmark_px)
+    out = Analysis({"moving_landmarks": moving})
+    if moving["landmarks"]:
+        ids = np.asarray(moving["landmark_ids"])
+        keep = ~np.isin(run.pairs.landmark, ids)
+        keep_all = ~np.isin(run.all_pairs.landmark, ids)
+        if np.count_nonzero(keep) >= 30:
+            run.scale = max(run.opts.loss_scale_px, 1.5 * float(np.median(np.linalg.norm(run.r_scale[keep], axis=1))))
+            run.pairs, run.all_pairs = run.pairs.select(keep), run.all_pairs.select(keep_all)
+            out.estimates["reprojection_before_static_px"] = _percentiles(_left_distance(run.r_before[keep]))
+        else:
+            moving["kept"] = "fewer than 30 predictions would remain: every landmark kept"
+    return out
+
+
+def _analyse_velocity_scale(run: _Check) -> Analysis:
+    """The robust fit of rotation (and bias) with the linear velocities' factor; the
+    later analyses see the velocities times that factor."""
+    opts = run.opts
+    run.x, run.cov, _, (log_k, log_k_var) = _fit_rotation_and_bias(
+        run.pairs, run.ts, run.u, run.C0, 1, run.scale, run.phi_start, opts.fit_gyro_bias, fit_scale=True,
+        log_scale0=math.log(run.k_start))
+    k_hat = math.exp(log_k)
+    k_se = k_hat * math.sqrt(log_k_var) if math.isfinite(log_k_var) and log_k_var >= 0 else None
+    k_se = math.hypot(k_se, opts.velocity_scale_floor) if k_se is not None else None
+    run.k_hat, run.k_se = k_hat, k_se
+    run.u = _scaled(run.u, k_hat)
+    return Analysis({"velocity_scale": k_hat, "velocity_scale_se": k_se})
+
+
+def _analyse_association(run: _Check) -> Analysis:
+    """Velocity association: the shift with the smallest cost at the fitted rotation
+    and bias (rotation and bias refitted with another shift), and its significance."""
+    all_pairs = run.all_pairs
+
+    def shifted_cost(s: int, phi: np.ndarray, b: np.ndarray) -> np.ndarray:
+        rel = all_pairs.relative_imu(run.ts, _debiased(run.u, b), s)
+        return _cauchy_cost(all_pairs.residuals(rel, _turned(run.C0, phi)), run.scale)
+
+    x = run.x
+    shift_costs = {s: shifted_cost(s, x[:3], x[3:]) for s in (-1, 0, 1, 2, 3)}
+    totals = {s: float(np.sum(c)) for s, c in shift_costs.items()}
+    shift = min(totals, key=totals.get)
+    if shift != 1:  # refit rotation and bias with the chosen association
+        run.x, run.cov, _, _ = _fit_rotation_and_bias(run.pairs, run.ts, run.u, run.C0, shift, run.scale, x[:3],
+                                                      run.opts.fit_gyro_bias)
+        shift_costs = {s: shifted_cost(s, run.x[:3], run.x[3:]) for s in shift_costs}
         totals = {s: float(np.sum(c)) for s, c in shift_costs.items()}
         shift = min(totals, key=totals.get)
-        if shift != 1:  # refit rotation and bias with the chosen association
-            x, cov, _, _ = _fit_rotation_and_bias(pairs, ts, u, C0, shift, scale, x[:3], opts.fit_gyro_bias)
-            shift_costs = {s: shifted_cost(s, x[:3], x[3:]) for s in shift_costs}
-            totals = {s: float(np.sum(c)) for s, c in shift_costs.items()}
-            shift = min(totals, key=totals.get)
-        # significance: paired difference of per-landmark costs, best vs "next"
-        diff = shift_costs[1] - shift_costs[shift]
-        z_assoc = _paired_z(diff, all_pairs.landmark)
-        est["velocity_association"] = {
-            "best_shift": int(shift), "costs": {str(s): c for s, c in totals.items()},
-            "z_vs_next": z_assoc,
-            "meaning": "shift s: the velocity sample of frame k+s describes the interval k -> k+1 (1 = 'next')"}
+    # significance: paired difference of per-landmark costs, best vs "next"
+    run.z_assoc = _paired_z(shift_costs[1] - shift_costs[shift], all_pairs.landmark)
+    run.shift, run.totals = shift, totals
+    return Analysis({"velocity_association": {
+        "best_shift": int(shift), "costs": {str(s): c for s, c in totals.items()}, "z_vs_next": run.z_assoc,
+        "meaning": "shift s: the velocity sample of frame k+s describes the interval k -> k+1 (1 = 'next')"}})
 
-        phi = x[:3]
-        phi_cov = cov[:3, :3]
-        # Body roll in turns (a nuisance, see roll_tilted): refit with the rates tilted
-        # by one prior σ of the roll gradient; the change of φ is a systematic error of
-        # the constant-rotation model, added to its covariance. It is large where the
-        # drive's turns go mostly one way (sparse 0020: 0.9° about the optical axis for
-        # 0.3°/(m/s²)), small where they balance (dense 0027: 0.2°). With ground-truth
-        # poses, sparse 0020's rates fit the camera best with an outward roll of 0.55°
-        # per m/s² and a constant 1.3° (as 0027, same day) instead of 2.7°.
-        axes = vehicle_axes(u) if opts.roll_gradient_prior_deg_per_mps2 > 0 else None
-        if axes is not None:
-            u_tilt = roll_tilted(u, math.radians(opts.roll_gradient_prior_deg_per_mps2), axes)
-            x_tilt, _, _, _ = _fit_rotation_and_bias(pairs, ts, u_tilt, C0, shift, scale, phi, opts.fit_gyro_bias)
-            d_phi = x_tilt[:3] - phi
-            phi_cov = phi_cov + np.outer(d_phi, d_phi)
-            est["body_roll_sensitivity_deg"] = np.degrees(d_phi).tolist()
-        else:
-            est["body_roll_sensitivity_deg"] = None
-        angle = float(np.degrees(np.linalg.norm(phi)))
-        angle_se = float(np.degrees(math.sqrt(max(np.trace(phi_cov), 0.0)))) if np.all(np.isfinite(phi_cov)) else None
-        if angle_se is not None:
-            angle_se = math.hypot(angle_se, opts.rotation_floor_deg)
-        # significance in the estimate's own metric (its uncertainty differs by axis:
-        # body roll only blurs the rotation about the forward axis)
-        floor = math.radians(opts.rotation_floor_deg)
-        try:
-            rotation_z2 = float(phi @ np.linalg.solve(phi_cov + floor**2 * np.eye(3), phi))
-        except np.linalg.LinAlgError:
-            rotation_z2 = float("nan")
-        if not math.isfinite(rotation_z2):  # no usable covariance: the floor alone
-            rotation_z2 = float(phi @ phi) / floor**2
-        est["imu_camera_rotation_chi2"] = rotation_z2
-        rel_fit = pairs.relative_imu(ts, _debiased(u, x[3:]), shift)
-        fit_median = float(np.median(_left_distance(pairs.residuals(rel_fit, _turned(C0, phi)))))
-        est["reprojection_best_fit_median_px"] = fit_median
-        reliable = fit_median <= opts.max_fit_median_px
-        est["conventions_checked"] = reliable
-        est["imu_camera_rotation_error_deg"] = angle
-        est["imu_camera_rotation_error_deg_se"] = angle_se
-        est["imu_camera_rotation_correction_deg"] = np.degrees(phi).tolist()
-        est["imu_camera_rotation_correction_deg_se"] = np.degrees(np.sqrt(np.clip(np.diag(phi_cov), 0, None))).tolist()
-        bias = x[3:]
-        # the fit cannot tell a bias from the mean of this recording's gyro noise: add it
-        bias_se = np.sqrt(np.clip(np.diag(cov[3:, 3:]), 0, None) + np.nan_to_num(sw) ** 2 / max(T, 1))
-        est["gyro_bias_visual_radps"] = bias.tolist()
-        est["gyro_bias_visual_radps_se"] = bias_se.tolist()
 
-        # time offset: grid around the chosen association, parabola at the minimum
-        time_offset, time_se, grid = _time_offset(all_pairs, ts, u, C0, x, shift, dt, scale, rng)
-        if time_se is not None:
-            time_se = math.hypot(time_se, opts.time_offset_floor_s)
-        est["time_offset_s"] = time_offset
-        est["time_offset_s_se"] = time_se
-        # the same relative to the filter's convention ("next"): a sample stamped t
-        # describes the motion at t + this; one frame = the "current" association
-        est["time_offset_effective_s"] = (1 - shift) * dt + time_offset
-        est["time_offset_grid"] = grid
+def _body_roll_covariance(run: _Check, phi: np.ndarray, phi_cov: np.ndarray) -> tuple[np.ndarray, Any]:
+    """Body roll in turns (a nuisance, see roll_tilted): refit with the rates tilted by
+    one prior σ of the roll gradient; the change of φ is a systematic error of the
+    constant-rotation model, added to its covariance. It is large where the drive's
+    turns go mostly one way (sparse 0020: 0.9° about the optical axis for 0.3°/(m/s²)),
+    small where they balance (dense 0027: 0.2°). With ground-truth poses, sparse 0020's
+    rates fit the camera best with an outward roll of 0.55° per m/s² and a constant
+    1.3° (as 0027, same day) instead of 2.7°. Returns (covariance, sensitivity in ° or None)."""
+    opts = run.opts
+    axes = vehicle_axes(run.u) if opts.roll_gradient_prior_deg_per_mps2 > 0 else None
+    if axes is None:
+        return phi_cov, None
+    u_tilt = roll_tilted(run.u, math.radians(opts.roll_gradient_prior_deg_per_mps2), axes)
+    x_tilt, _, _, _ = _fit_rotation_and_bias(run.pairs, run.ts, u_tilt, run.C0, run.shift, run.scale, phi,
+                                             opts.fit_gyro_bias)
+    d_phi = x_tilt[:3] - phi
+    return phi_cov + np.outer(d_phi, d_phi), np.degrees(d_phi).tolist()
 
-        # --- findings ---------------------------------------------------------------
-        se_txt = f" ± {angle_se:.2f}" if angle_se is not None else ""
-        if not reliable:
-            notes.append(f"the tracks reproject with a median {fit_median:.1f} px even under the best rotation and "
-                         f"association: rotation, association and time offset not reported")
-            est["conventions_checked"] = False
-            for key in ("imu_camera_rotation_error_deg", "imu_camera_rotation_error_deg_se",
-                        "imu_camera_rotation_correction_deg", "imu_camera_rotation_correction_deg_se",
-                        "time_offset_s", "time_offset_s_se", "time_offset_effective_s"):
-                est[key] = None
-            est["gyro_bias_visual_radps"] = [None] * 3
-            est["gyro_bias_visual_radps_se"] = [None] * 3
-            est["velocity_scale"] = est["velocity_scale_se"] = None
-        elif angle > opts.rotation_error_deg:
-            findings.append(Finding("imu-camera-rotation", "ERROR",
+
+def _analyse_rotation(run: _Check) -> Analysis:
+    """IMU-camera rotation: the fitted correction, its uncertainty (with body roll) and
+    significance; whether the best fit is good enough to report the conventions."""
+    opts, x = run.opts, run.x
+    phi = run.phi = x[:3]
+    phi_cov, roll = _body_roll_covariance(run, phi, run.cov[:3, :3])
+    out = Analysis({"body_roll_sensitivity_deg": roll})
+    angle = run.angle = float(np.degrees(np.linalg.norm(phi)))
+    angle_se = float(np.degrees(math.sqrt(max(np.trace(phi_cov), 0.0)))) if np.all(np.isfinite(phi_cov)) else None
+    if angle_se is not None:
+        angle_se = math.hypot(angle_se, opts.rotation_floor_deg)
+    run.angle_se = angle_se
+    # significance in the estimate's own metric (its uncertainty differs by axis:
+    # body roll only blurs the rotation about the forward axis)
+    floor = math.radians(opts.rotation_floor_deg)
+    try:
+        rotation_z2 = float(phi @ np.linalg.solve(phi_cov + floor**2 * np.eye(3), phi))
+    except np.linalg.LinAlgError:
+        rotation_z2 = float("nan")
+    if not math.isfinite(rotation_z2):  # no usable covariance: the floor alone
+        rotation_z2 = float(phi @ phi) / floor**2
+    run.rotation_z2 = rotation_z2
+    rel_fit = run.pairs.relative_imu(run.ts, _debiased(run.u, x[3:]), run.shift)
+    run.fit_median = float(np.median(_left_distance(run.pairs.residuals(rel_fit, _turned(run.C0, phi)))))
+    run.reliable = run.fit_median <= opts.max_fit_median_px
+    run.bias = x[3:]
+    # the fit cannot tell a bias from the mean of this recording's gyro noise: add it
+    bias_se = np.sqrt(np.clip(np.diag(run.cov[3:, 3:]), 0, None) + np.nan_to_num(run.sw) ** 2 / max(run.T, 1))
+    out.estimates.update({
+        "imu_camera_rotation_chi2": rotation_z2, "reprojection_best_fit_median_px": run.fit_median,
+        "conventions_checked": run.reliable, "imu_camera_rotation_error_deg": angle,
+        "imu_camera_rotation_error_deg_se": angle_se, "imu_camera_rotation_correction_deg": np.degrees(phi).tolist(),
+        "imu_camera_rotation_correction_deg_se": np.degrees(np.sqrt(np.clip(np.diag(phi_cov), 0, None))).tolist(),
+        "gyro_bias_visual_radps": run.bias.tolist(), "gyro_bias_visual_radps_se": bias_se.tolist()})
+    return out
+
+
+def _analyse_time_offset(run: _Check) -> Analysis:
+    """Camera-IMU time offset: grid around the chosen association, parabola at the minimum."""
+    time_offset, time_se, grid = _time_offset(run.all_pairs, run.ts, run.u, run.C0, run.x, run.shift, run.dt,
+                                              run.scale, run.rng)
+    if time_se is not None:
+        time_se = math.hypot(time_se, run.opts.time_offset_floor_s)
+    run.time_offset, run.time_se = time_offset, time_se
+    # the same relative to the filter's convention ("next"): a sample stamped t
+    # describes the motion at t + this; one frame = the "current" association
+    return Analysis({"time_offset_s": time_offset, "time_offset_s_se": time_se,
+                     "time_offset_effective_s": (1 - run.shift) * run.dt + time_offset, "time_offset_grid": grid})
+
+
+def _rotation_finding(run: _Check) -> Analysis:
+    """The rotation's finding (ERROR beyond ``rotation_error_deg``, WARN when
+    significant); with an unreliable fit none, and the conventions' estimates withdrawn."""
+    opts, phi, angle = run.opts, run.phi, run.angle
+    if not run.reliable:
+        out = Analysis({"conventions_checked": False})
+        out.notes.append(f"the tracks reproject with a median {run.fit_median:.1f} px even under the best rotation "
+                         f"and association: rotation, association and time offset not reported")
+        for key in ("imu_camera_rotation_error_deg", "imu_camera_rotation_error_deg_se",
+                    "imu_camera_rotation_correction_deg", "imu_camera_rotation_correction_deg_se",
+                    "time_offset_s", "time_offset_s_se", "time_offset_effective_s"):
+            out.estimates[key] = None
+        out.estimates["gyro_bias_visual_radps"] = [None] * 3
+        out.estimates["gyro_bias_visual_radps_se"] = [None] * 3
+        out.estimates["velocity_scale"] = out.estimates["velocity_scale_se"] = None
+        return out
+    out = Analysis()
+    se_txt = f" ± {run.angle_se:.2f}" if run.angle_se is not None else ""
+    if angle > opts.rotation_error_deg:
+        out.findings.append(Finding("imu-camera-rotation", "ERROR",
                                     f"the velocities and cam_T_imu disagree by a {angle:.1f}{se_txt}° rotation "
                                     f"(axis-convention mismatch, e.g. a frame turned 180°): features reproject "
-                                    f"with a median {est['reprojection_before_px']['median']:.1f} px under dead "
+                                    f"with a median {run.est['reprojection_before_px']['median']:.1f} px under dead "
                                     f"reckoning; run with the suggested imu_camera_rotation_correction_deg"))
-            suggested["imu_camera_rotation_correction_deg"] = [round(float(v), 3) for v in np.degrees(phi)]
-        elif angle > opts.rotation_warn_deg and rotation_z2 > _CHI2_3DOF_99:
-            findings.append(Finding("imu-camera-rotation", "WARN",
+        out.suggested["imu_camera_rotation_correction_deg"] = [round(float(v), 3) for v in np.degrees(phi)]
+    elif angle > opts.rotation_warn_deg and run.rotation_z2 > _CHI2_3DOF_99:
+        out.findings.append(Finding("imu-camera-rotation", "WARN",
                                     f"cam_T_imu's rotation is off by {angle:.2f}{se_txt}° (correction "
                                     f"{_fmt_vec(np.degrees(phi), '.2f')}° about camera x, y, z): run with the "
                                     f"suggested imu_camera_rotation_correction_deg"))
-            suggested["imu_camera_rotation_correction_deg"] = [round(float(v), 3) for v in np.degrees(phi)]
-        else:
-            findings.append(Finding("imu-camera-rotation", "OK",
+        out.suggested["imu_camera_rotation_correction_deg"] = [round(float(v), 3) for v in np.degrees(phi)]
+    else:
+        out.findings.append(Finding("imu-camera-rotation", "OK",
                                     f"velocities and cam_T_imu agree (rotation error {angle:.2f}{se_txt}°); "
                                     f"nothing to do"))
+    return out
 
-        if not reliable:
-            pass
+
+def _association_findings(run: _Check) -> Analysis:
+    """With a reliable fit: the findings of velocity association, velocity scale and
+    time offset. The whole-frame part of the offset relative to "next" is the
+    association when the comparison of whole-frame shifts agrees (else none); the rest
+    is a time offset."""
+    out = Analysis()
+    if not run.reliable:
+        return out
+    opts, dt, shift, suggested = run.opts, run.dt, run.shift, out.suggested
+    effective = (1 - shift) * dt + run.time_offset
+    n_off = int(round(effective / dt)) if dt > 0 else 0
+    if n_off != 1 - shift:
+        n_off = 0
+    frac = effective - n_off * dt
+    if n_off != 0:
+        if n_off == 1:
+            suggested["velocity_association"] = "current"
+            what = "the sample of frame k describes the interval k -> k+1, not the sample of k+1"
+            fix = "velocity_association: current"
         else:
-            # The whole-frame part of the offset relative to "next" is the association
-            # when the comparison of whole-frame shifts agrees (else none); the rest is
-            # a time offset.
-            effective = (1 - shift) * dt + time_offset
-            n_off = int(round(effective / dt)) if dt > 0 else 0
-            if n_off != 1 - shift:
-                n_off = 0
-            frac = effective - n_off * dt
-            if n_off != 0:
-                if n_off == 1:
-                    suggested["velocity_association"] = "current"
-                    what = "the sample of frame k describes the interval k -> k+1, not the sample of k+1"
-                    fix = "velocity_association: current"
-                else:
-                    suggested["time_offset_s"] = round(n_off * dt, 4)
-                    what = f"the sample of frame k{1 - n_off:+d} describes the interval k -> k+1"
-                    fix = f"time_offset_s: {suggested['time_offset_s']}"
-                findings.append(Finding("velocity-association", "WARN",
-                                        f"{what} (reprojection cost {totals[shift]:.0f} vs {totals[1]:.0f} for k+1, "
-                                        f"z = {z_assoc:.1f}; offset {effective * 1000:.0f} ms): run with the "
-                                        f"suggested {fix}"))
-            else:
-                findings.append(Finding("velocity-association", "OK",
-                                        "the sample of frame k+1 describes the interval k -> k+1 (the filter's "
-                                        f"convention; offset {effective * 1000:.0f} ms); nothing to do"))
-            speed = float(np.median(np.linalg.norm(sequence.linear_velocity_in_imu_mps, axis=1)))
-            noise = float(np.linalg.norm(np.nan_to_num(sv)))
-            findings.append(_velocity_scale_finding(k_hat, k_se, opts, suggested, noise / speed if speed > 0 else 0.0))
-            ts_txt = f" ± {time_se * 1000:.0f}" if time_se is not None else ""
-            if time_se is not None and abs(frac) > max(opts.time_offset_warn_s, 3 * time_se):
-                suggested["time_offset_s"] = round(suggested.get("time_offset_s", 0.0) + frac, 4)
-                findings.append(Finding("time-offset", "WARN",
-                                        f"the velocities are {frac * 1000:.0f}{ts_txt} ms off the images (a sample "
-                                        f"stamped t describes the motion at t + offset): run with the suggested "
-                                        f"time_offset_s"))
-            else:
-                findings.append(Finding("time-offset", "OK",
-                                        f"no camera-IMU time offset beyond {opts.time_offset_warn_s * 1000:.0f} ms "
-                                        f"(estimate {frac * 1000:.0f}{ts_txt} ms); nothing to do"))
-        if reliable:
-            k = int(round(opts.translation_smoothing_s / dt)) if noisy and dt > 0 else 1
-            t_est, t_finding, t_cam_T_imu = _imu_camera_translation(
-                pairs.subset(opts.translation_pairs, rng), ts, u, C0, phi, bias, shift, scale, max(1, k) | 1, opts)
-            est.update(t_est)
-            findings.append(t_finding)
-            if t_cam_T_imu is not None:
-                suggested["cam_T_imu"] = t_cam_T_imu
+            suggested["time_offset_s"] = round(n_off * dt, 4)
+            what = f"the sample of frame k{1 - n_off:+d} describes the interval k -> k+1"
+            fix = f"time_offset_s: {suggested['time_offset_s']}"
+        out.findings.append(Finding("velocity-association", "WARN",
+                                    f"{what} (reprojection cost {run.totals[shift]:.0f} vs {run.totals[1]:.0f} for "
+                                    f"k+1, z = {run.z_assoc:.1f}; offset {effective * 1000:.0f} ms): run with the "
+                                    f"suggested {fix}"))
     else:
-        notes.append(f"only {pairs.n_pairs} track predictions: rotation, translation, association and time offset "
-                     f"not checked")
-        for code in ("imu-camera-rotation", "imu-camera-translation", "velocity-association", "velocity-scale",
-                     "time-offset"):
-            findings.append(Finding(code, "WARN", f"not enough in-sync stereo tracks ({pairs.n_pairs} predictions) "
-                                                  f"to check this; the recording's conventions are assumed"))
-        est["imu_camera_rotation_error_deg"] = None
-        est["conventions_checked"] = False
+        out.findings.append(Finding("velocity-association", "OK",
+                                    "the sample of frame k+1 describes the interval k -> k+1 (the filter's "
+                                    f"convention; offset {effective * 1000:.0f} ms); nothing to do"))
+    speed = float(np.median(np.linalg.norm(run.sequence.linear_velocity_in_imu_mps, axis=1)))
+    noise = float(np.linalg.norm(np.nan_to_num(run.sv)))
+    out.findings.append(_velocity_scale_finding(run.k_hat, run.k_se, opts, suggested,
+                                                noise / speed if speed > 0 else 0.0))
+    time_se = run.time_se
+    ts_txt = f" ± {time_se * 1000:.0f}" if time_se is not None else ""
+    if time_se is not None and abs(frac) > max(opts.time_offset_warn_s, 3 * time_se):
+        suggested["time_offset_s"] = round(suggested.get("time_offset_s", 0.0) + frac, 4)
+        out.findings.append(Finding("time-offset", "WARN",
+                                    f"the velocities are {frac * 1000:.0f}{ts_txt} ms off the images (a sample "
+                                    f"stamped t describes the motion at t + offset): run with the suggested "
+                                    f"time_offset_s"))
+    else:
+        out.findings.append(Finding("time-offset", "OK",
+                                    f"no camera-IMU time offset beyond {opts.time_offset_warn_s * 1000:.0f} ms "
+                                    f"(estimate {frac * 1000:.0f}{ts_txt} ms); nothing to do"))
+    return out
 
-    # --- pixels ---------------------------------------------------------------------------
-    pix = estimate_pixel_noise(sequence)
-    est["pixel_noise"] = pix
+
+def _analyse_translation(run: _Check) -> Analysis:
+    """With a reliable fit: the IMU-camera translation (:func:`_imu_camera_translation`)."""
+    if not run.reliable:
+        return Analysis()
+    dt = run.dt
+    k = int(round(run.opts.translation_smoothing_s / dt)) if run.noisy and dt > 0 else 1
+    t_est, t_finding, t_cam_T_imu = _imu_camera_translation(
+        run.pairs.subset(run.opts.translation_pairs, run.rng), run.ts, run.u, run.C0, run.phi, run.bias, run.shift,
+        run.scale, max(1, k) | 1, run.opts)
+    out = Analysis(t_est, [t_finding])
+    if t_cam_T_imu is not None:
+        out.suggested["cam_T_imu"] = t_cam_T_imu
+    return out
+
+
+def _analyse_pixel_noise(run: _Check) -> Analysis:
+    """Pixel noise and gross outliers of the tracks (:func:`estimate_pixel_noise`)."""
+    pix = estimate_pixel_noise(run.sequence)
+    out = Analysis({"pixel_noise": pix})
+    base = run.base
     if pix["sigma_px"] is None:
-        findings.append(Finding("pixel-noise", "WARN", "too few tracks of 3+ frames to measure the pixel noise"))
-    else:
-        sev = "WARN" if pix["sigma_px"] > 2 * base.pixel_noise_px or pix["outlier_share"] > 0.2 else "OK"
-        findings.append(Finding("pixel-noise", sev,
+        out.findings.append(Finding("pixel-noise", "WARN", "too few tracks of 3+ frames to measure the pixel noise"))
+        return out
+    sev = "WARN" if pix["sigma_px"] > 2 * base.pixel_noise_px or pix["outlier_share"] > 0.2 else "OK"
+    out.findings.append(Finding("pixel-noise", sev,
                                 f"tracks scatter by {pix['sigma_px']:.2f} px per coordinate, "
                                 f"{100 * pix['outlier_share']:.1f} % gross jumps (> {pix['outlier_threshold_px']:.0f} "
                                 f"px); " + ("raise pixel_noise_px" if sev == "WARN" else
                                             f"the filter's {base.pixel_noise_px:g} px covers it")))
+    return out
 
-    # --- reprojection after the corrections found ------------------------------------------
-    if pairs.n_pairs >= 30:
-        corrected = apply_corrections(sequence, FilterOptions.from_dict(
-            {k: v for k, v in suggested.items()
-             if k not in ("velocity_noise_mps", "angular_noise_radps", "timestamp_scale")}))  # (already applied)
-        r_after = pairs.residuals(pairs.relative_imu(corrected.timestamps_s, corrected.velocities(), 1),
-                                  np.asarray(corrected.cam_T_imu))
-        est["reprojection_after_px"] = _percentiles(_left_distance(r_after))
-        b, a = est["reprojection_before_px"], est["reprojection_after_px"]
-        sev = "OK" if a["median"] <= opts.max_fit_median_px else "WARN"
-        changed = any(k in suggested for k in ("imu_camera_rotation_correction_deg", "cam_T_imu",
-                                               "velocity_association", "time_offset_s", "gyro_bias_radps"))
-        text = (f"tracks reproject under dead-reckoned poses (1-{opts.window} frames ahead) with median "
-                f"{b['median']:.2f} px, p90 {b['p90']:.2f} px")
-        moving = est.get("moving_landmarks") or {}
-        if "reprojection_before_static_px" in est:
-            bs = est["reprojection_before_static_px"]
-            text += (f"; {moving['landmarks']} of {moving['of_landmarks']} landmarks "
-                     f"({100 * moving['predictions_share']:.0f} % of the predictions) do not follow the world's motion "
-                     f"(traffic or mismatched tracks) and were left out of the checks; the others: median "
-                     f"{bs['median']:.2f} px, p90 {bs['p90']:.2f} px")
-        if changed:
-            text += f"; after the suggested corrections {a['median']:.2f} px, p90 {a['p90']:.2f} px"
-        if sev == "OK":
-            text += "; nothing to do"
-        else:
-            text += ("; the IMU and the images disagree beyond what check models (far, moving or mismatched "
-                     "features?): IMU-camera rotation, velocity association and time offset could not be checked")
-        findings.append(Finding("reprojection", sev, text))
 
-    o = est["observations"]
+def _analyse_reprojection(run: _Check) -> Analysis:
+    """Reprojection under dead reckoning after the corrections found (with 30+ predictions)."""
+    if run.pairs.n_pairs < 30:
+        return Analysis()
+    opts, suggested, pairs = run.opts, run.suggested, run.pairs
+    corrected = apply_corrections(run.sequence, FilterOptions.from_dict(
+        {k: v for k, v in suggested.items()
+         if k not in ("velocity_noise_mps", "angular_noise_radps", "timestamp_scale")}))  # (already applied)
+    r_after = pairs.residuals(pairs.relative_imu(corrected.timestamps_s, corrected.velocities(), 1),
+                              np.asarray(corrected.cam_T_imu))
+    a = _percentiles(_left_distance(r_after))
+    out = Analysis({"reprojection_after_px": a})
+    b = run.est["reprojection_before_px"]
+    sev = "OK" if a["median"] <= opts.max_fit_median_px else "WARN"
+    changed = any(k in suggested for k in ("imu_camera_rotation_correction_deg", "cam_T_imu",
+                                           "velocity_association", "time_offset_s", "gyro_bias_radps"))
+    text = (f"tracks reproject under dead-reckoned poses (1-{opts.window} frames ahead) with median "
+            f"{b['median']:.2f} px, p90 {b['p90']:.2f} px")
+    moving = run.est.get("moving_landmarks") or {}
+    if "reprojection_before_static_px" in run.est:
+        bs = run.est["reprojection_before_static_px"]
+        text += (f"; {moving['landmarks']} of {moving['of_landmarks']} landmarks "
+                 f"({100 * moving['predictions_share']:.0f} % of the predictions) do not follow the world's motion "
+                 f"(traffic or mismatched tracks) and were left out of the checks; the others: median "
+                 f"{bs['median']:.2f} px, p90 {bs['p90']:.2f} px")
+    if changed:
+        text += f"; after the suggested corrections {a['median']:.2f} px, p90 {a['p90']:.2f} px"
+    if sev == "OK":
+        text += "; nothing to do"
+    else:
+        text += ("; the IMU and the images disagree beyond what check models (far, moving or mismatched "
+                 "features?): IMU-camera rotation, velocity association and time offset could not be checked")
+    out.findings.append(Finding("reprojection", sev, text))
+    return out
+
+
+def _analyse_tracker_artifacts(run: _Check) -> Analysis:
+    """The findings on what ``vislam info`` counts: exact repeats, non-positive disparity."""
+    o = run.est["observations"]
     rep_share = o["repeated_share"]
-    findings.append(Finding("repeated-observations", "OK",
-                            f"{o['repeated']} observations ({100 * rep_share:.1f} %) repeat the previous frame's "
-                            f"pixels exactly (tracker artifact; the tracks are one frame late afterwards; "
-                            f"{describe_repeat_evidence(o['repeat_evidence'])}): "
-                            + ("the filter skips them by default (repeated_observations: skip); nothing to do"
-                               if rep_share > 0 else "nothing to do")))
     npd = o["non_positive_disparity"]
-    findings.append(Finding("disparity", "OK",
-                            f"{npd} observations with non-positive disparity (uL <= uR): "
-                            + ("they cannot be triangulated; the filter skips them; nothing to do" if npd
-                               else "nothing to do")))
+    return Analysis(findings=[
+        Finding("repeated-observations", "OK",
+                f"{o['repeated']} observations ({100 * rep_share:.1f} %) repeat the previous frame's "
+                f"pixels exactly (tracker artifact; the tracks are one frame late afterwards; "
+                f"{describe_repeat_evidence(o['repeat_evidence'])}): "
+                + ("the filter skips them by default (repeated_observations: skip); nothing to do"
+                   if rep_share > 0 else "nothing to do")),
+        Finding("disparity", "OK",
+                f"{npd} observations with non-positive disparity (uL <= uR): "
+                + ("they cannot be triangulated; the filter skips them; nothing to do" if npd else "nothing to do"))])
 
-    order = {c: i for i, c in enumerate(FINDING_CODES)}
-    findings.sort(key=lambda f: order.get(f.code, len(order)))
-    elapsed = time.perf_counter() - t_start
-    logger.info("checked %s in %.1f s: %s", sequence.name, elapsed,
-                ", ".join(f"{f.code} {f.severity}" for f in findings if f.severity != "OK") or "all OK")
-    return CheckResult(name=sequence.name, source=sequence.source, estimates=est, findings=findings,
-                       suggested=suggested, elapsed_s=elapsed, notes=notes)
+
+#: The reprojection analyses (with 30+ track predictions), in order: each reads what the
+#: earlier ones found.
+CONVENTION_ANALYSES = (
+    ("best-start", _analyse_best_start),
+    ("moving-landmarks", _analyse_moving_landmarks),
+    ("velocity-scale", _analyse_velocity_scale),
+    ("velocity-association", _analyse_association),
+    ("imu-camera-rotation", _analyse_rotation),
+    ("time-offset", _analyse_time_offset),
+    ("rotation-finding", _rotation_finding),
+    ("association-findings", _association_findings),
+    ("imu-camera-translation", _analyse_translation),
+)
+
+#: The analyses of :func:`check_sequence`, in order: (name, function of the run returning
+#: an :class:`Analysis`).
+ANALYSES = (
+    ("timestamps", _analyse_timestamps),
+    ("observations", _analyse_observations),
+    ("imu-noise", _analyse_imu_noise),
+    ("gyro-bias", _analyse_gyro_bias),
+    ("track-pairs", _analyse_track_pairs),
+    ("conventions", _analyse_conventions),
+    ("pixel-noise", _analyse_pixel_noise),
+    ("reprojection", _analyse_reprojection),
+    ("tracker-artifacts", _analyse_tracker_artifacts),
+)
 
 
 #: chi-square (3 dof) 99 % quantile: the significance test of the rotation error.

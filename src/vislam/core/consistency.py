@@ -158,63 +158,9 @@ def filter_nees(drive, options: FilterOptions, mode: str = "slam") -> NeesTrace:
     if mode not in CONSISTENCY_MODES:
         raise ValueError(f"mode must be one of {CONSISTENCY_MODES}, got {mode!r}")
     seq = drive.sequence
-    T = seq.n_frames
-    true_imu_T_world = se3_inverse(drive.world_T_imu)
-    cal = seq.calibration
-    filt = {"slam": SlamFilter, "localization": LocalizationFilter, "mapping": MappingFilter}[mode](cal, options)
-    pose = np.full(T, np.nan)
-    pos_err = np.full(T, np.nan)
-    lm = np.full(T, np.nan)
-    lm_n = np.zeros(T, dtype=np.int64)
-    bins = DEPTH_BINS_M
-    bin_sum = np.zeros(bins.size - 1)
-    bin_n = np.zeros(bins.size - 1, dtype=np.int64)
-    moving = np.asarray(drive.landmark_is_moving)
-    cam_T_imu = np.asarray(drive.cam_T_imu)
-
-    def landmarks_at(t: int) -> None:
-        ids = filt.live_landmark_ids
-        if ids.size == 0:
-            return
-        anchors = None
-        if mode == "mapping":
-            rows = filt.tracks.rows(ids)
-            p_est, cov = filt.tracks["mean"][rows], filt.tracks["cov"][rows]
-        else:
-            state = filt.state
-            slots = np.arange(state.n_landmarks)
-            p_est, cov = state.lm_mean, state.param_cov(slots)  # the filter's own chart
-            if state.inverse_depth:
-                anchors = state.world_T_anchor
-        static = ~moving[ids]
-        if not np.any(static):
-            return
-        ids, p_est, cov = ids[static], p_est[static], cov[static]
-        p_true = drive.p_lm_in_world[ids]
-        if anchors is None:
-            n = point_nees(p_true, p_est, cov)
-        else:
-            n = point_nees(world_to_inverse_depth(p_true, anchors[static]), p_est, cov)
-        ok = np.isfinite(n)
-        if not np.any(ok):
-            return
-        lm[t] = float(n[ok].mean())
-        lm_n[t] = int(ok.sum())
-        cam_T_world = cam_T_imu @ true_imu_T_world[t]
-        depth = p_true[ok] @ cam_T_world[2, :3] + cam_T_world[2, 3]
-        b = np.clip(np.searchsorted(bins, depth, side="right") - 1, 0, bins.size - 2)
-        np.add.at(bin_sum, b, n[ok])
-        np.add.at(bin_n, b, 1)
-
-    def finished() -> None:
-        processed = filt.pop_processed()
-        for t, mu, cov, _ in processed:
-            if cov is not None and mode != "mapping":
-                pose[t] = pose_nees(true_imu_T_world[t], mu, cov)
-                pos_err[t] = np.linalg.norm(se3_inverse(mu)[:3, 3] - drive.world_T_imu[t][:3, 3])
-        if processed and mode != "localization":
-            landmarks_at(processed[-1][0])
-
+    filt = {"slam": SlamFilter, "localization": LocalizationFilter, "mapping": MappingFilter}[mode](
+        seq.calibration, options)
+    record = _NeesRecorder(drive, mode)
     error = None
     try:
         for frame in seq.frames():
@@ -222,12 +168,72 @@ def filter_nees(drive, options: FilterOptions, mode: str = "slam") -> NeesTrace:
                 filt.step(frame, world_T_imu=drive.world_T_imu[frame.index])
             else:
                 filt.step(frame)
-            finished()
-        if hasattr(filt, "drain"):
-            filt.drain()
-            finished()
+            record.finished(filt)
+        filt.drain()  # frames a delayed filter still holds
+        record.finished(filt)
     except EstimationError as exc:
         error = str(exc)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        depth_mean = np.where(bin_n > 0, bin_sum / np.maximum(bin_n, 1), np.nan)
-    return NeesTrace(pose, lm, lm_n, pos_err, bins.copy(), depth_mean, bin_n, error)
+    return record.trace(error)
+
+
+class _NeesRecorder:
+    """The NEES of the frames a filter finishes, against a simulated drive's truth, for
+    :func:`filter_nees` (through the filter contract only: ``pop_processed``,
+    ``landmark_estimates``)."""
+
+    def __init__(self, drive, mode: str):
+        T = drive.sequence.n_frames
+        self.drive, self.mode = drive, mode
+        self.true_imu_T_world = se3_inverse(drive.world_T_imu)
+        self.pose = np.full(T, np.nan)
+        self.pos_err = np.full(T, np.nan)
+        self.lm = np.full(T, np.nan)
+        self.lm_n = np.zeros(T, dtype=np.int64)
+        self.bins = DEPTH_BINS_M
+        self.bin_sum = np.zeros(self.bins.size - 1)
+        self.bin_n = np.zeros(self.bins.size - 1, dtype=np.int64)
+        self.moving = np.asarray(drive.landmark_is_moving)
+        self.cam_T_imu = np.asarray(drive.cam_T_imu)
+
+    def finished(self, filt) -> None:
+        """The pose NEES of every frame finished since the last call, the landmark NEES
+        at the last of them."""
+        processed = filt.pop_processed()
+        for t, mu, cov, _ in processed:
+            if cov is not None and self.mode != "mapping":
+                self.pose[t] = pose_nees(self.true_imu_T_world[t], mu, cov)
+                self.pos_err[t] = np.linalg.norm(se3_inverse(mu)[:3, 3] - self.drive.world_T_imu[t][:3, 3])
+        if processed and self.mode != "localization":
+            self.landmarks_at(filt, processed[-1][0])
+
+    def landmarks_at(self, filt, t: int) -> None:
+        """Mean NEES of the static landmarks being estimated at frame t (in the filter's
+        own chart), and its terms per depth bin."""
+        if filt.live_landmark_ids.size == 0:
+            return
+        ids, p_est, cov, anchors = filt.landmark_estimates()
+        static = ~self.moving[ids]
+        if not np.any(static):
+            return
+        ids, p_est, cov = ids[static], p_est[static], cov[static]
+        p_true = self.drive.p_lm_in_world[ids]
+        if anchors is None:
+            n = point_nees(p_true, p_est, cov)
+        else:
+            n = point_nees(world_to_inverse_depth(p_true, anchors[static]), p_est, cov)
+        ok = np.isfinite(n)
+        if not np.any(ok):
+            return
+        self.lm[t] = float(n[ok].mean())
+        self.lm_n[t] = int(ok.sum())
+        cam_T_world = self.cam_T_imu @ self.true_imu_T_world[t]
+        depth = p_true[ok] @ cam_T_world[2, :3] + cam_T_world[2, 3]
+        bins = self.bins
+        b = np.clip(np.searchsorted(bins, depth, side="right") - 1, 0, bins.size - 2)
+        np.add.at(self.bin_sum, b, n[ok])
+        np.add.at(self.bin_n, b, 1)
+
+    def trace(self, error: str | None) -> NeesTrace:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            depth_mean = np.where(self.bin_n > 0, self.bin_sum / np.maximum(self.bin_n, 1), np.nan)
+        return NeesTrace(self.pose, self.lm, self.lm_n, self.pos_err, self.bins.copy(), depth_mean, self.bin_n, error)

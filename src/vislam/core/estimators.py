@@ -25,7 +25,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from vislam.core.corrections import apply_corrections, calibration_used
-from vislam.core.filters import FRAME_STAT_FIELDS, LocalizationFilter, MappingFilter, SlamFilter, single_thread_blas
+from vislam.core.contract import FRAME_STAT_FIELDS, StepwiseFilter
+from vislam.core.filters import LocalizationFilter, MappingFilter, SlamFilter, single_thread_blas
 from vislam.core.lie import se3_inverse
 from vislam.core.options import MODES, FilterOptions
 from vislam.core.results import RunResult
@@ -98,40 +99,46 @@ def run_slam(sequence: Sequence, options: FilterOptions | None = None, progress:
     return drive(SlamFilter(sequence.calibration, options, reference=reference), sequence, progress, on_frame)
 
 
-def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame = None,
-          poses: np.ndarray | None = None) -> RunResult:
-    """Feed every frame of ``sequence`` to the stepwise filter ``filt`` and collect the
-    result (``poses``: known world_T_imu per frame, for a :class:`MappingFilter`)."""
-    T = sequence.n_frames
-    imu_T_world = np.zeros((T, 4, 4))
-    covs = np.zeros((T, 6, 6))
-    has_cov = True
-    frame_seconds = np.zeros(T)
-    frame_stats = {name: np.zeros(T) for name in FRAME_STAT_FIELDS}
-    bias_log = getattr(filt, "imu_bias_log", None)  # SLAM with the IMU-error state: b̂ per frame
-    imu_bias = np.zeros((T, 6)) if bias_log is not None and filt.imu_bias_model is not None else None
-    error = None
-    done = 0
+class _Collector:
+    """What :func:`drive` keeps of the frames a filter finishes: poses, covariances,
+    per-frame statistics and, with the IMU-error state, the bias estimate per frame."""
 
-    def collect() -> list:
+    def __init__(self, filt: StepwiseFilter, n_frames: int):
+        self.filt = filt
+        self.imu_T_world = np.zeros((n_frames, 4, 4))
+        self.covs = np.zeros((n_frames, 6, 6))
+        self.has_cov = True
+        self.frame_seconds = np.zeros(n_frames)
+        self.frame_stats = np.zeros((len(FRAME_STAT_FIELDS), n_frames))
+        self.bias_log = filt.diagnostics.imu_bias_log  # SLAM with the IMU-error state: b̂ per frame
+        self.imu_bias = np.zeros((n_frames, 6)) if self.bias_log is not None else None
+        self.done = 0
+
+    def collect(self) -> list:
         """Store the frames the filter has finished (usually the one just stepped)."""
-        nonlocal done, has_cov
-        processed = filt.pop_processed()
+        processed = self.filt.pop_processed()
         for t, pose, cov, fs in processed:
-            imu_T_world[t] = pose
+            self.imu_T_world[t] = pose
             if cov is None:
-                has_cov = False
+                self.has_cov = False
             else:
-                covs[t] = cov
-            for name in FRAME_STAT_FIELDS:
-                frame_stats[name][t] = getattr(fs, name)
-            done = t + 1
-        if imu_bias is not None:
-            for t, b in bias_log:
-                imu_bias[t] = b
-            bias_log.clear()
+                self.covs[t] = cov
+            self.frame_stats[:, t] = fs.values()
+            self.done = t + 1
+        if self.imu_bias is not None:
+            for t, b in self.bias_log:
+                self.imu_bias[t] = b
+            self.bias_log.clear()
         return processed
 
+
+def drive(filt: StepwiseFilter, sequence: Sequence, progress: Progress = None, on_frame: OnFrame = None,
+          poses: np.ndarray | None = None) -> RunResult:
+    """Feed every frame of ``sequence`` to the stepwise filter ``filt`` (the contract of
+    :mod:`vislam.core.contract`) and collect the result (``poses``: known world_T_imu per
+    frame, for a :class:`MappingFilter`)."""
+    out = _Collector(filt, sequence.n_frames)
+    error = None
     for frame in sequence.frames():
         t = frame.index
         tic = time.perf_counter()
@@ -145,44 +152,53 @@ def drive(filt, sequence: Sequence, progress: Progress = None, on_frame: OnFrame
             error = str(exc)
             break
         finally:
-            frame_seconds[t] = time.perf_counter() - tic
-            processed = collect()
+            out.frame_seconds[t] = time.perf_counter() - tic
+            processed = out.collect()
         if on_frame is not None:
             on_frame(filt, processed)
         if progress:
             progress(t + 1)
-    if error is None and hasattr(filt, "drain"):  # frames a delayed filter still holds
+    if error is None:  # frames a delayed filter still holds (a no-op for the others)
         tic = time.perf_counter()
         try:
             filt.drain()
         except EstimationError as exc:
             error = str(exc)
-        frame_seconds[sequence.n_frames - 1] += time.perf_counter() - tic
-        processed = collect()
+        out.frame_seconds[sequence.n_frames - 1] += time.perf_counter() - tic
+        processed = out.collect()
         if on_frame is not None and processed:
             on_frame(filt, processed)
     if error is not None:
         logger.info("%s; stopping with a partial result", error)  # reported by the caller (result.error)
+    return _result(filt, sequence, out, poses, error)
+
+
+def _result(filt: StepwiseFilter, sequence: Sequence, out: _Collector, poses: np.ndarray | None,
+            error: str | None) -> RunResult:
+    """The :class:`RunResult` of a driven filter: ``finish()``, the statistics, and the
+    final trajectory where the filter has one (the smoother's replaces the online poses)."""
+    done = out.done
     landmarks = filt.finish()
     stats = filt.stats
-    stats.frames = T
+    stats.frames = sequence.n_frames
     stats.observations_total = sequence.observations.n_observations
     stats.frames_processed = done
-    stats.frame_seconds = frame_seconds[:done]
+    stats.frame_seconds = out.frame_seconds[:done]
     if poses is not None:
         world_T_imu = poses[:done].copy()
     else:
-        world_T_imu = se3_inverse(imu_T_world[:done]) if done else np.zeros((0, 4, 4))
+        world_T_imu = se3_inverse(out.imu_T_world[:done]) if done else np.zeros((0, 4, 4))
     result = RunResult(filt.mode, sequence.name, sequence.timestamps_s[:done].copy(), world_T_imu,
-                       covs[:done] if has_cov else None, landmarks, filt.options, stats,
+                       out.covs[:done] if out.has_cov else None, landmarks, filt.options, stats,
                        partial=error is not None, error=error, calibration=calibration_used(sequence))
-    if hasattr(filt, "final_trajectory"):  # a smoother: its final poses (and marginals) replace the online ones
+    final = filt.final_trajectory()
+    if final is not None:  # a smoother: its final poses (and marginals) replace the online ones
         result.extra["online_world_T_imu"] = result.world_T_imu
         result.extra["online_pose_covariance"] = result.pose_covariance
-        final, final_cov = filt.final_trajectory()
-        result.world_T_imu = final[:done]
+        final_poses, final_cov = final
+        result.world_T_imu = final_poses[:done]
         result.pose_covariance = final_cov[:done] if final_cov is not None else None
-    result.frame_stats = {name: a[:done] for name, a in frame_stats.items()}
-    if imu_bias is not None:
-        result.extra["imu_bias"] = imu_bias[:done]
+    result.frame_stats = {name: out.frame_stats[i, :done].copy() for i, name in enumerate(FRAME_STAT_FIELDS)}
+    if out.imu_bias is not None:
+        result.extra["imu_bias"] = out.imu_bias[:done]
     return result

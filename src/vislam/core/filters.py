@@ -5,9 +5,11 @@ bookkeeping and advance one frame at a time, as a robot (or a ROS node) delivers
 * :class:`MappingFilter` — EKF update of landmarks with the poses known (III-B);
 * :class:`SlamFilter` — the joint EKF over pose and landmarks (III-C).
 
-Each has ``predict(dt_s, linear_velocity, angular_velocity)`` (the IMU sample of the
-interval ending at the new frame), ``update(ids, pixels)`` (the stereo observations of
-the new frame) and ``step(frame)`` (both; the first frame has no prediction), and read
+Each implements the stepwise filter contract (:class:`vislam.core.contract.StepwiseFilter`,
+whose module docstring is the written contract): ``predict(dt_s, linear_velocity,
+angular_velocity)`` (the IMU sample of the interval ending at the new frame),
+``update(ids, pixels)`` (the stereo observations of the new frame) and ``step(frame)``
+(both; the first frame has no prediction), ``drain()`` after the last frame, and read
 access to the current estimate: ``world_T_imu`` (4x4), ``pose_covariance`` (6x6, left
 perturbation of ``imu_T_world`` in (v, ω) order), the landmarks in the state and the
 frozen map, the statistics of the last frame (:class:`FrameStats`) and of the run
@@ -37,10 +39,20 @@ from __future__ import annotations
 
 import logging
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from vislam.core.contract import (
+    EMPTY_FROZEN,
+    FRAME_STAT_FIELDS,
+    FrameStats,
+    FrameStatsCounter,
+    LandmarkEstimates,
+    StepwiseFilter,
+)
+from vislam.core.contract import checked_dt as _check_dt
+from vislam.core.contract import checked_observations as _observations
+from vislam.core.contract import twist as _twist
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
 from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
@@ -72,107 +84,11 @@ __all__ = ["FrameStats", "FinalPoses", "LocalizationFilter", "MappingFilter", "S
            "final_poses"]
 
 
-@dataclass
-class FrameStats:
-    """What happened in one frame's update.
-
-    Attributes:
-        frame: frame index t.
-        observations: observations in the frame.
-        used: observations used (updates of live landmarks accepted by the gate, plus
-            initializations).
-        gated: observations refused by the chi-square gate (or the static check of
-            delayed initialization).
-        repeated: exact repeats of the previous frame's pixels (skipped by default).
-        initialized: landmarks that entered the state (or the mapping tracks started).
-        rejected: landmarks rejected in this frame (gate or drift test).
-        live_landmarks: landmarks in the state after the frame.
-        nis_mean: mean normalized innovation squared ``rᵀS⁻¹r`` of the 4-D stereo
-            innovations that passed the gate (expected 4 for a consistent filter before
-            gating; NaN when none).
-        nis_count: how many innovations ``nis_mean`` averages.
-    """
-
-    frame: int = 0
-    observations: int = 0
-    used: int = 0
-    gated: int = 0
-    repeated: int = 0
-    initialized: int = 0
-    rejected: int = 0
-    live_landmarks: int = 0
-    nis_mean: float = float("nan")
-    nis_count: int = 0
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-#: Names of the per-frame statistics (the batch result keeps one array of each).
-FRAME_STAT_FIELDS = tuple(FrameStats.__dataclass_fields__)
-
-
-class _StatsDelta:
-    """Per-frame statistics as differences of the cumulative :class:`RunStats` counters."""
-
-    def __init__(self, stats: RunStats):
-        self.stats = stats
-        self._start = (0, 0, 0, 0, 0)
-
-    def _now(self):
-        s = self.stats
-        return (s.observations_used, s.observations_gated, s.observations_repeated, s.landmarks_initialized,
-                s.landmarks_rejected)
-
-    def begin(self) -> None:
-        self._start = self._now()
-
-    def end(self, frame: int, observations: int, live: int, nis_sum: float, nis_count: int) -> FrameStats:
-        used, gated, repeated, initialized, rejected = (b - a for a, b in zip(self._start, self._now()))
-        return FrameStats(frame, observations, used, gated, repeated, initialized, rejected, live,
-                          nis_sum / nis_count if nis_count else float("nan"), nis_count)
-
-
-class _History:
-    """Frames whose estimate is final, for :meth:`pop_processed` (a batch driver takes
-    them after every step; at most :attr:`HISTORY` are kept if nobody does)."""
-
-    HISTORY = 4096
-
-    def _init_history(self) -> None:
-        from collections import deque
-
-        self._processed = deque(maxlen=self.HISTORY)
-
-    def _record(self, stats: "FrameStats") -> None:
-        cov = self.pose_covariance  # a copy (or None)
-        self._processed.append((stats.frame, np.array(self.imu_T_world), cov, stats))
-
-    def pop_processed(self) -> list:
-        """``[(t, imu_T_world (4, 4), pose_covariance (6, 6) or None, FrameStats), ...]`` of
-        the frames finished since the last call, in order. Usually the frame just
-        stepped; a filter that runs behind the newest frame (the stalled-track remap)
-        returns its frames when they are final."""
-        out = list(self._processed)
-        self._processed.clear()
-        return out
-
-    def pop_final_poses(self) -> list:
-        """``[(t, world_T_imu (4, 4)), ...]`` of the frames finished since the last call,
-        in order: :meth:`pop_processed` in the output convention (the IMU pose in the
-        world frame, the inverse of the filter's ``imu_T_world``). It takes the same
-        frames as :meth:`pop_processed`: use one or the other. With the stalled-track
-        remap these are the frames ``stall_max_delay_frames`` behind the newest one
-        (:attr:`world_T_imu` is the newest frame's pose, predicted); after the last frame,
-        ``drain()`` finishes the rest (or use :func:`final_poses`)."""
-        return [(t, se3_inverse(imu_T_world)) for t, imu_T_world, _cov, _stats in self.pop_processed()]
-
-
 class _FrozenLog:
     """``last_frozen``: (ids, p_lm_in_world, rejected) of the landmarks frozen into the
     map during the last update (for live views such as the Rerun recording)."""
 
-    _EMPTY = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=bool))
+    _EMPTY = EMPTY_FROZEN
 
     def _init_frozen_log(self) -> None:
         self.last_frozen = self._EMPTY
@@ -185,15 +101,6 @@ class _FrozenLog:
         parts = self._frozen_parts
         self.last_frozen = tuple(np.concatenate([p[i] for p in parts]) for i in range(3)) if parts else self._EMPTY
         self._frozen_parts = []
-
-
-def _twist(linear_velocity, angular_velocity) -> np.ndarray:
-    """u = (v, ω), the report's twist order."""
-    if isinstance(linear_velocity, np.ndarray) and isinstance(angular_velocity, np.ndarray) \
-            and linear_velocity.shape == angular_velocity.shape == (3,):
-        return np.concatenate([linear_velocity, angular_velocity]).astype(np.float64, copy=False)
-    return np.concatenate([np.asarray(linear_velocity, dtype=np.float64).reshape(3),
-                           np.asarray(angular_velocity, dtype=np.float64).reshape(3)])
 
 
 _BLAS_CONTROLLER = None
@@ -229,35 +136,10 @@ def single_thread_blas():
             _BLAS_DEPTH -= 1
 
 
-def _check_dt(dt_s) -> float:
-    dt = float(dt_s)
-    if not np.isfinite(dt) or dt < 0:
-        raise ConfigError(f"predict: dt_s must be a finite time step >= 0 (s), got {dt_s!r}")
-    return dt
-
-
-def _observations(ids, pixels, trusted: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Checked (ids (n,), pixels (n, 4)) of one frame (``trusted``: the arrays of a
-    :class:`Frame`, already validated by its sequence — only converted)."""
-    if trusted and isinstance(ids, np.ndarray) and ids.dtype == np.int64 and isinstance(pixels, np.ndarray) \
-            and pixels.dtype == np.float64:
-        return ids, pixels
-    ids = np.asarray(ids)
-    pixels = np.asarray(pixels, dtype=np.float64)
-    if ids.ndim != 1 or pixels.shape != (ids.shape[0], 4):
-        raise ConfigError(f"update: expected landmark ids (n,) and pixels (n, 4), got {ids.shape} and {pixels.shape}")
-    if ids.size and not np.issubdtype(ids.dtype, np.integer):
-        raise ConfigError(f"update: landmark ids must be integers, got dtype {ids.dtype}")
-    ids = ids.astype(np.int64, copy=False)
-    if ids.size > 1 and np.any(np.diff(ids) <= 0):
-        raise ConfigError("update: landmark ids must be strictly increasing within a frame")
-    return ids, pixels
-
-
 # ============================================================================= localization
 
 
-class LocalizationFilter(_History):
+class LocalizationFilter(StepwiseFilter):
     """EKF prediction of the IMU pose only (the report's III-A)::
 
         μ ← exp(−τ û) μ,     Σ ← F Σ Fᵀ + τ² W,     F = exp(−τ ad(u))
@@ -314,10 +196,6 @@ class LocalizationFilter(_History):
             self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
         return self.update(frame.landmark_ids, frame.pixels)
 
-    live_landmark_ids = np.zeros(0, dtype=np.int64)
-    live_p_lm_in_world = np.zeros((0, 3))
-    last_frozen = _FrozenLog._EMPTY
-
     def finish(self) -> None:
         """Nothing to freeze (no landmarks)."""
         return None
@@ -326,7 +204,7 @@ class LocalizationFilter(_History):
 # ============================================================================= mapping
 
 
-class MappingFilter(_FrozenLog, _History):
+class MappingFilter(_FrozenLog, StepwiseFilter):
     """Landmark mapping with the poses known (the report's III-B).
 
     Landmarks are independent given the poses, so each keeps its own 3x3 covariance —
@@ -346,16 +224,16 @@ class MappingFilter(_FrozenLog, _History):
     def __init__(self, calibration: Calibration, options: FilterOptions | None = None):
         self.calibration = calibration
         self.options = options or FilterOptions()
-        self.model = StereoModel(calibration.camera, calibration.cam_T_imu)
+        self._model = StereoModel(calibration.camera, calibration.cam_T_imu)
         self._V = self.options.V
         self._gate = self.options.gate_threshold
         self._odometry = LocalizationFilter(calibration, self.options)
         self._pose_given = None  # world_T_imu given for the current frame, if any
         # one row per track in progress, with its estimate
-        self.tracks = TrackTable({"mean": ((3,), np.float64, 0.0), "cov": ((3, 3), np.float64, 0.0)})
+        self._tracks = TrackTable({"mean": ((3,), np.float64, 0.0), "cov": ((3, 3), np.float64, 0.0)})
         self._builder = MapBuilder()
         self.stats = RunStats()
-        self._delta = _StatsDelta(self.stats)
+        self._delta = FrameStatsCounter(self.stats)
         self._repeated = RepeatDetector(self.options.repeated_observations != "use", self.stats, calibration.camera)
         self._split = self.options.repeated_observations == "split"
         self.frame_index = -1
@@ -381,13 +259,19 @@ class MappingFilter(_FrozenLog, _History):
     @property
     def live_landmark_ids(self) -> np.ndarray:
         """Ids of the landmarks with a track in progress (rejected ones excluded)."""
-        rows = self.tracks.live_rows
-        return self.tracks.ids[~self.tracks["rejected"][rows]]
+        rows = self._tracks.live_rows
+        return self._tracks.ids[~self._tracks["rejected"][rows]]
+
+    def landmark_estimates(self) -> LandmarkEstimates:
+        """The tracks in progress (rejected ones excluded): world points and their 3x3 covariances."""
+        ids = self.live_landmark_ids
+        rows = self._tracks.rows(ids)
+        return LandmarkEstimates(ids, self._tracks["mean"][rows], self._tracks["cov"][rows])
 
     @property
     def live_p_lm_in_world(self) -> np.ndarray:
-        rows = self.tracks.live_rows
-        return self.tracks["mean"][rows[~self.tracks["rejected"][rows]]].copy()
+        rows = self._tracks.live_rows
+        return self._tracks["mean"][rows[~self._tracks["rejected"][rows]]].copy()
 
     # --- steps ----------------------------------------------------------------------
     def predict(self, dt_s: float, linear_velocity, angular_velocity) -> None:
@@ -424,8 +308,8 @@ class MappingFilter(_FrozenLog, _History):
         if np.any(~act):
             self._start_tracks(t, imu_T_world, ids[~act], z[~act])
         self.stats.frames_processed += 1
-        self.last_frame_stats = self._delta.end(t, ids_seen.size, int((~self.tracks["rejected"][
-            self.tracks.live_rows]).sum()), 0.0, 0)
+        self.last_frame_stats = self._delta.end(t, ids_seen.size, int((~self._tracks["rejected"][
+            self._tracks.live_rows]).sum()), 0.0, 0)
         self._collect_frozen()
         self._record(self.last_frame_stats)
         return self.last_frame_stats
@@ -434,23 +318,23 @@ class MappingFilter(_FrozenLog, _History):
         """Enter the tracks of ``ids`` into the map; a rejected track stays (flagged)
         while its landmark is in view, so that its observations keep being ignored."""
         if ids.size:
-            rows = self.tracks.rows(ids)
-            self._builder.add(ids, self.tracks["mean"][rows], self.tracks["cov"][rows],
-                              *self.tracks.entry(ids, rows), status)
-            self._log_frozen(ids, self.tracks["mean"][rows], status == LANDMARK_REJECTED)
+            rows = self._tracks.rows(ids)
+            self._builder.add(ids, self._tracks["mean"][rows], self._tracks["cov"][rows],
+                              *self._tracks.entry(ids, rows), status)
+            self._log_frozen(ids, self._tracks["mean"][rows], status == LANDMARK_REJECTED)
             if status != LANDMARK_REJECTED:
-                self.tracks.remove(ids)
+                self._tracks.remove(ids)
 
     def _select(self, t: int, ids_seen: np.ndarray, z: np.ndarray):
         """Drop exact repeats ("skip"; "split" ends the track instead) and observations of
         rejected landmarks. Returns (ids, pixels, track rows, has-an-estimate mask)."""
         rep = self._repeated(t, ids_seen, z)
-        rows, rejected = self.tracks.lookup(ids_seen)
+        rows, rejected = self._tracks.lookup(ids_seen)
         act = (rows >= 0) & ~rejected  # has a current estimate
         if self._split and np.any(rep & act):
             self._freeze(ids_seen[rep & act], LANDMARK_OK)  # the track ends; the repeat starts a new one
             rep = np.zeros_like(rep)
-            rows, rejected = self.tracks.lookup(ids_seen)
+            rows, rejected = self._tracks.lookup(ids_seen)
             act = (rows >= 0) & ~rejected
         keep = ~rep & ~rejected  # rejected landmarks stay ignored while in view
         return ids_seen[keep], z[keep], rows[keep], act[keep]
@@ -459,15 +343,15 @@ class MappingFilter(_FrozenLog, _History):
                        z: np.ndarray) -> None:
         """Gated EKF update of each landmark (K = Σ Hᵀ S⁻¹, m ← m + K r, Σ ← (I − K H) Σ);
         tracks gated ``max_consecutive_gated`` frames in a row are rejected."""
-        tr = self.tracks
+        tr = self._tracks
         tr["mean"][rows], tr["cov"][rows], ok, _ = mapping_update(
-            self.model, imu_T_world, tr["mean"][rows], tr["cov"][rows], z, self._V, self._gate)
+            self._model, imu_T_world, tr["mean"][rows], tr["cov"][rows], z, self._V, self._gate)
         bad = tr.updated(ids, ok, t, self.stats, self.options.max_consecutive_gated, rows=rows)
         self._freeze(bad, LANDMARK_REJECTED)
 
     def _end_unseen(self, ids_seen: np.ndarray) -> None:
         """Tracks whose landmark is out of view end (a skipped repeat keeps its track alive)."""
-        tr = self.tracks
+        tr = self._tracks
         ended = ~in_sorted(tr.ids, ids_seen) & ~tr["rejected"][tr.live_rows]
         self._freeze(tr.ids[ended], LANDMARK_OK)
         tr.end_unseen_rejections(ids_seen)
@@ -478,8 +362,8 @@ class MappingFilter(_FrozenLog, _History):
         self.stats.observations_not_initialized += int((~good).sum())
         if np.any(good):
             g_ids = ids[good]
-            rows = self.tracks.started(g_ids, t)
-            self.tracks["mean"][rows], self.tracks["cov"][rows] = mapping_initialize(self.model, imu_T_world,
+            rows = self._tracks.started(g_ids, t)
+            self._tracks["mean"][rows], self._tracks["cov"][rows] = mapping_initialize(self._model, imu_T_world,
                                                                                      z[good], self._V)
             self.stats.landmarks_initialized += int(g_ids.size)
             self.stats.observations_used += int(g_ids.size)
@@ -490,7 +374,7 @@ class MappingFilter(_FrozenLog, _History):
 
     def finish(self) -> LandmarkMap:
         """Freeze the tracks in progress and return the whole map (the filter is done)."""
-        tr = self.tracks
+        tr = self._tracks
         self._freeze(tr.ids[~tr["rejected"][tr.live_rows]], LANDMARK_OK)
         return self._builder.build()
 
@@ -508,8 +392,8 @@ class _PendingLandmarks:
     def __init__(self, options: FilterOptions, model: StereoModel, tracks: TrackTable, freeze_rejected):
         self.n = options.init_frames
         self.options = options
-        self.model = model
-        self.tracks = tracks
+        self._model = model
+        self._tracks = tracks
         self.freeze_rejected = freeze_rejected
         # start: first frame of the waiting window; last: last frame seen while waiting
         self.waiting = IdTable({"start": ((), np.int64, -1), "last": ((), np.int64, -2),
@@ -549,7 +433,7 @@ class _PendingLandmarks:
             sel = t0 == f0
             first = r_rows[sel][0]
             Q = (tau2_sum - w["tau2"][first]) * opts.W  # Σ τ² W between the two frames
-            nis[sel] = static_consistency_nis(self.model, imu_T_world, r_z[sel], w["pose"][first],
+            nis[sel] = static_consistency_nis(self._model, imu_T_world, r_z[sel], w["pose"][first],
                                               pixels[r_rows[sel]], opts.V, Q)
         ok = nis <= opts.gate_threshold
         bad_rows = r_rows[~ok]
@@ -562,10 +446,10 @@ class _PendingLandmarks:
             if np.any(out_sel):
                 out = r_ids[out_sel]
                 w.remove(out)
-                rows_out = self.tracks.started(out, t)
-                self.tracks["rejected"][rows_out] = True
+                rows_out = self._tracks.started(out, t)
+                self._tracks["rejected"][rows_out] = True
                 stats.landmarks_rejected += int(out.size)
-                p_w, cov = mapping_initialize(self.model, imu_T_world, r_z[out_sel], opts.V)
+                p_w, cov = mapping_initialize(self._model, imu_T_world, r_z[out_sel], opts.V)
                 self.freeze_rejected(out, p_w, cov)
         w.remove(r_ids[ok])
         return r_ids[ok], r_z[ok]
@@ -579,7 +463,7 @@ class _PendingLandmarks:
         w["tau2"][rows] = tau2_sum
 
 
-class SlamFilter(_FrozenLog, _History):
+class SlamFilter(_FrozenLog, StepwiseFilter):
     """The joint EKF over the IMU pose and the landmarks (the report's III-C).
 
     State: the inverse IMU pose ``imu_T_world`` (left perturbation) and the positions of
@@ -594,7 +478,7 @@ class SlamFilter(_FrozenLog, _History):
     def __init__(self, calibration: Calibration, options: FilterOptions | None = None, reference: bool = False):
         self.calibration = calibration
         self.options = opts = options or FilterOptions()
-        self.model = StereoModel(calibration.camera, calibration.cam_T_imu)
+        self._model = StereoModel(calibration.camera, calibration.cam_T_imu)
         self._V, self._W = opts.V, opts.W
         self._attitude_jacobian = opts.level_velocity_jacobian
         self._gate = opts.gate_threshold
@@ -608,75 +492,59 @@ class SlamFilter(_FrozenLog, _History):
         self._accel_var = opts.landmark_acceleration_std_mps2**2
         self._update = slam_update_reference if reference else slam_update
         #: The IMU-error state's model (FilterOptions.imu_bias_sigma_*), or None (off).
-        self.imu_bias_model = ImuBias(opts.imu_bias_sigma, opts.imu_bias_time_constant_s) \
+        self._imu_bias_model = ImuBias(opts.imu_bias_sigma, opts.imu_bias_time_constant_s) \
             if opts.imu_bias_enabled else None
-        self.state = SlamState(np.eye(4), opts.initial_pose_covariance, lm_dim=6 if self._motion else 3,
+        self._state = SlamState(np.eye(4), opts.initial_pose_covariance, lm_dim=6 if self._motion else 3,
                                inverse_depth=opts.landmark_parametrization == "inverse_depth" and not self._motion,
-                               bias_covariance=None if self.imu_bias_model is None
-                               else np.diag(self.imu_bias_model.variance))
+                               bias_covariance=None if self._imu_bias_model is None
+                               else np.diag(self._imu_bias_model.variance))
         # one row per track in progress; the drift test's per-landmark sums live there too
-        self.tracks = TrackTable({"drift_sum": ((4,), np.float64, 0.0), "drift_n": ((), np.float64, 0.0)})
+        self._tracks = TrackTable({"drift_sum": ((4,), np.float64, 0.0), "drift_n": ((), np.float64, 0.0)})
         self._builder = MapBuilder()
         self.stats = RunStats()
-        self._delta = _StatsDelta(self.stats)
+        self._delta = FrameStatsCounter(self.stats)
         self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats, calibration.camera)
         self._split = opts.repeated_observations == "split"
         self._last_correction = np.zeros(6)  # pose correction of the last update (OC transition)
         self._tau2_sum = 0.0  # Σ τ² of the predictions so far (delayed initialization)
-        self._pending = _PendingLandmarks(opts, self.model, self.tracks, self._freeze_rejected_new)
+        self._pending = _PendingLandmarks(opts, self._model, self._tracks, self._freeze_rejected_new)
         self._t = -1  # the last frame updated
         self.last_frame_stats = FrameStats(frame=-1)
         self._init_frozen_log()
-        self._init_history()
-        self.failed: str | None = None
-        #: Optional observer of the innovations before gating (e.g. vislam.core.tune's
-        #: likelihood): called in every update as ``hook(r, H_pose, H_lm, blocks, V,
-        #: in_front, nis)`` with what :func:`slam_predict_nis` returns for the
-        #: observations of landmarks in the state. None (default): not called.
-        self.innovation_hook = None
-        #: Observations skipped because their landmark was rejected earlier (the
-        #: observations no innovation is computed for, besides repeats and new landmarks).
-        self.observations_of_rejected = 0
-        #: Updates done per frame by the iterated update (update_iterations > 1), one
-        #: entry per frame with a joint update.
-        self.update_counts: list[int] = []
-        #: With the IMU-error state: (frame, b̂ (6,)) of the frames finished, in order (the
-        #: estimate after that frame's update; the batch driver takes and clears them, at
-        #: most :attr:`HISTORY` are kept); empty without it.
-        from collections import deque
-
-        self.imu_bias_log = deque(maxlen=self.HISTORY)
+        # diagnostics: failed, innovation_hook, observations_of_rejected, update_counts and,
+        # with the IMU-error state, imu_bias_log (see vislam.core.contract.FilterDiagnostics)
+        self._init_history(bias_log=self._imu_bias_model is not None)
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
-        self.stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames, calibration.camera) \
+        self._stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames, calibration.camera) \
             if opts.remaps_stalled_tracks else None
 
     # --- read access ----------------------------------------------------------------
     @property
     def frame_index(self) -> int:
         """Index of the newest frame received (−1 before the first)."""
-        return self._t + (self.stall_buffer.n_pending if self.stall_buffer is not None else 0)
+        return self._t + (self._stall_buffer.n_pending if self._stall_buffer is not None else 0)
 
     @property
     def imu_T_world(self) -> np.ndarray:
         """(4, 4) the filter's pose variable μ (the report's inverse IMU pose) at its
         last updated frame (with the stalled-track remap, ``stall_max_delay_frames``
         behind the newest frame; :attr:`world_T_imu` is predicted up to the newest)."""
-        return self.state.imu_T_world
+        return self._state.imu_T_world
 
     @property
     def world_T_imu(self) -> np.ndarray:
         """(4, 4) the IMU pose in the world frame at the newest frame: with the
         stalled-track remap, the last updated pose predicted with the IMU samples
         received since (μ ← exp(−τ û) μ per frame)."""
-        mean = self.state.imu_T_world
-        if self.stall_buffer is not None and self.stall_buffer.n_pending:
-            frames = self.stall_buffer.pending_frames()
-            bias = self.state.imu_bias if self.imu_bias_model is not None else None
+        mean = self._state.imu_T_world
+        if self._stall_buffer is not None and self._stall_buffer.n_pending:
+            frames = self._stall_buffer.pending_frames()
+            bias = self._state.imu_bias if self._imu_bias_model is not None else None
             for frame in frames[1:] if self._t < 0 else frames:  # the first frame has no prediction
                 u = _twist(frame.linear_velocity_mps, frame.angular_velocity_radps)
                 if bias is not None:
                     u = u - bias  # the IMU-error estimate, predicted: b̂ ← a b̂ per step
-                    bias = self.imu_bias_model.decay(frame.dt_s) * bias
+                    bias = self._imu_bias_model.decay(frame.dt_s) * bias
                 u = body_twist(u, mean, self.options.velocity_frame)
                 mean = se3_exp(-frame.dt_s * u) @ mean
         return se3_inverse(mean)
@@ -685,33 +553,46 @@ class SlamFilter(_FrozenLog, _History):
     def pose_covariance(self) -> np.ndarray:
         """(6, 6) covariance of the left perturbation of imu_T_world, (v, ω) order, at
         the frame of :attr:`imu_T_world` (a copy)."""
-        return self.state.pose_cov.copy()
+        return self._state.pose_cov.copy()
 
     @property
     def imu_bias(self) -> np.ndarray | None:
         """(6,) estimate b̂ = (b_v, b_ω) of the IMU-error state at the frame of
         :attr:`imu_T_world` (m/s, rad/s; a copy), or None when it is off."""
-        return self.state.imu_bias.copy() if self.imu_bias_model is not None else None
+        return self._state.imu_bias.copy() if self._imu_bias_model is not None else None
 
     @property
     def imu_bias_covariance(self) -> np.ndarray | None:
         """(6, 6) covariance of :attr:`imu_bias` (a copy), or None when it is off."""
-        return self.state.bias_cov.copy() if self.imu_bias_model is not None else None
+        return self._state.bias_cov.copy() if self._imu_bias_model is not None else None
 
     @property
     def live_landmark_ids(self) -> np.ndarray:
         """(L,) ids of the landmarks in the state."""
-        return self.state.landmark_ids.copy()
+        return self._state.landmark_ids.copy()
 
     @property
     def live_p_lm_in_world(self) -> np.ndarray:
         """(L, 3) positions of the landmarks in the state (m)."""
-        return self.state.p_lm_in_world.copy()
+        return self._state.p_lm_in_world.copy()
+
+    @property
+    def state(self):
+        """The :class:`~vislam.core.state.SlamState` (read only; for tests and inspection)."""
+        return self._state
+
+    def landmark_estimates(self) -> LandmarkEstimates:
+        """The landmarks in the state in its own chart (world points, or inverse depth
+        with the anchor poses) and their marginal covariances in that chart."""
+        state = self._state
+        ids = state.landmark_ids.copy()
+        cov = state.param_cov(np.arange(state.n_landmarks))
+        return LandmarkEstimates(ids, state.lm_mean, cov, state.world_T_anchor if state.inverse_depth else None)
 
     @property
     def live_landmark_covariance(self) -> np.ndarray:
         """(L, 3, 3) marginal covariances of the landmarks in the state (m²)."""
-        return self.state.landmark_cov(np.arange(self.state.n_landmarks))
+        return self._state.landmark_cov(np.arange(self._state.n_landmarks))
 
     def frozen_map(self) -> LandmarkMap:
         """The map of the landmarks frozen so far (marginalized or rejected; a copy)."""
@@ -727,9 +608,9 @@ class SlamFilter(_FrozenLog, _History):
         frames that are complete, ``stall_max_delay_frames`` behind this one, and
         :attr:`world_T_imu` predicts the pose up to this frame. Returns the statistics
         of the last frame updated."""
-        if self.stall_buffer is None:
+        if self._stall_buffer is None:
             return self._step_now(frame)
-        buf = self.stall_buffer
+        buf = self._stall_buffer
         repeats, dropped = buf.repeats, buf.dropped
         ready = buf.push(frame)
         self.stats.observations_repeated += buf.repeats - repeats
@@ -740,8 +621,8 @@ class SlamFilter(_FrozenLog, _History):
 
     def drain(self) -> None:
         """The recording ended: update the frames still held by the stall buffer."""
-        if self.stall_buffer is not None:
-            for ready in self.stall_buffer.flush():
+        if self._stall_buffer is not None:
+            for ready in self._stall_buffer.flush():
                 self._step_now(ready)
 
     def _step_now(self, frame: Frame) -> FrameStats:
@@ -762,15 +643,15 @@ class SlamFilter(_FrozenLog, _History):
         tau = _check_dt(dt_s)
         u = _twist(linear_velocity, angular_velocity)
         self._repeated.set_motion(tau, linear_velocity, angular_velocity)
-        bias, D = self.imu_bias_model, None
+        bias, D = self._imu_bias_model, None
         if bias is not None:
-            u = u - self.state.imu_bias  # u_meas − b̂
-            D = bias_twist_jacobian(self.state.imu_T_world, self.options.velocity_frame)
-        u, du = prediction_twist(u, self.state.imu_T_world, self.options.velocity_frame, self._attitude_jacobian)
+            u = u - self._state.imu_bias  # u_meas − b̂
+            D = bias_twist_jacobian(self._state.imu_T_world, self.options.velocity_frame)
+        u, du = prediction_twist(u, self._state.imu_T_world, self.options.velocity_frame, self._attitude_jacobian)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            predict_state(self.state, tau, u, self._W, self._last_correction if self._oc else None, du, bias, D)
+            predict_state(self._state, tau, u, self._W, self._last_correction if self._oc else None, du, bias, D)
             if self._motion:
-                self.state.predict_landmarks(tau, self._accel_var)
+                self._state.predict_landmarks(tau, self._accel_var)
         self._last_correction = np.zeros(6)  # used once: the next correction comes with the next update
         self._tau2_sum += tau * tau
 
@@ -795,9 +676,9 @@ class SlamFilter(_FrozenLog, _History):
             # overflow/NaN is detected by the health check and reported as an error
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                 # unobservable directions of the pose at the prior (OC variant)
-                N_pose = -se3_adjoint(self.state.imu_T_world) if self._oc else None
+                N_pose = -se3_adjoint(self._state.imu_T_world) if self._oc else None
                 ids, z, rows = self._select(t, ids_seen, z)
-                slots = self.state.slots_of(ids)
+                slots = self._state.slots_of(ids)
                 live = slots >= 0
                 correction = np.zeros(6)
                 if live.any():
@@ -811,13 +692,14 @@ class SlamFilter(_FrozenLog, _History):
                     self._initialize_new(t, ids[~live], z[~live], N_pose)
                 if self._oc:
                     self._last_correction = correction
-                self.stats.max_state_landmarks = max(self.stats.max_state_landmarks, self.state.n_landmarks)
+                self.stats.max_state_landmarks = max(self.stats.max_state_landmarks, self._state.n_landmarks)
                 self._check_health(t)
         except (EstimationError, GeometryError, np.linalg.LinAlgError) as exc:
-            self.failed = str(exc) if isinstance(exc, EstimationError) else f"numerical failure at frame {t}: {exc}"
-            raise EstimationError(self.failed, frame=t) from exc
+            self.diagnostics.failed = str(exc) if isinstance(exc, EstimationError) \
+                else f"numerical failure at frame {t}: {exc}"
+            raise EstimationError(self.diagnostics.failed, frame=t) from exc
         self.stats.frames_processed += 1
-        self.last_frame_stats = self._delta.end(t, ids_seen.size, self.state.n_landmarks, nis_sum, nis_count)
+        self.last_frame_stats = self._delta.end(t, ids_seen.size, self._state.n_landmarks, nis_sum, nis_count)
         self._collect_frozen()
         self._record(self.last_frame_stats)
         return self.last_frame_stats
@@ -829,12 +711,12 @@ class SlamFilter(_FrozenLog, _History):
         Returns (ids, pixels, track rows)."""
         rep = self._repeated(t, ids_seen, z)
         if self._split and rep.any():
-            slots_rep = self.state.slots_of(ids_seen[rep])
+            slots_rep = self._state.slots_of(ids_seen[rep])
             self._freeze(slots_rep[slots_rep >= 0], LANDMARK_OK)  # the track ends; the repeat starts a new one
             rep = np.zeros_like(rep)
-        track_rows, rejected = self.tracks.lookup(ids_seen)
+        track_rows, rejected = self._tracks.lookup(ids_seen)
         usable = ~rep & ~rejected
-        self.observations_of_rejected += int(np.count_nonzero(rejected & ~rep))
+        self.diagnostics.observations_of_rejected += int(np.count_nonzero(rejected & ~rep))
         return ids_seen[usable], z[usable], track_rows[usable]
 
     def _update_live(self, slots: np.ndarray, ids: np.ndarray, rows: np.ndarray, z: np.ndarray, N_pose):
@@ -845,21 +727,21 @@ class SlamFilter(_FrozenLog, _History):
 
         then the innovation drift test and the Schmidt-Kalman probation of young
         landmarks. Returns (pose correction ε, accepted mask, NIS per observation)."""
-        opts, state, tracks = self.options, self.state, self.tracks
+        opts, state, tracks = self.options, self._state, self._tracks
         V = self._V
         drift = self._drift_gate < np.inf
-        r, Hp, Hl, in_front, nis, blocks = slam_predict_nis(state, self.model, slots, z, V, N_pose)
-        if self.innovation_hook is not None:
-            self.innovation_hook(r, Hp, Hl, blocks, V, in_front, nis)
+        r, Hp, Hl, in_front, nis, blocks = slam_predict_nis(state, self._model, slots, z, V, N_pose)
+        if self.diagnostics.innovation_hook is not None:
+            self.diagnostics.innovation_hook(r, Hp, Hl, blocks, V, in_front, nis)
         ok = in_front & (nis <= self._gate)
         young = tracks["nobs"][rows] <= opts.probation_frames  # init counts as 1
         joint = ok & ~young
         if drift and ok.any():
             Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
         if self._iterations > 1 and joint.any():
-            correction = slam_update_iterated(state, self.model, slots[joint], z[joint], V, N_pose,
+            correction = slam_update_iterated(state, self._model, slots[joint], z[joint], V, N_pose,
                                               self._iterations, self._update, opts.update_iteration_tolerance,
-                                              self.update_counts, (r[joint], Hp[joint], Hl[joint]))
+                                              self.diagnostics.update_counts, (r[joint], Hp[joint], Hl[joint]))
         else:
             correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
         if drift and ok.any():
@@ -867,7 +749,7 @@ class SlamFilter(_FrozenLog, _History):
         probe = ok & young
         if probe.any():
             # slots are unchanged by the joint update; re-linearize at the new pose
-            r2, Hp2, Hl2, _, _, _ = slam_predict_nis(state, self.model, slots[probe], z[probe], V, N_pose)
+            r2, Hp2, Hl2, _, _, _ = slam_predict_nis(state, self._model, slots[probe], z[probe], V, N_pose)
             schmidt_update(state, slots[probe], r2, Hp2, Hl2, V)  # K_lm only: the pose is "considered"
         return correction, ok, nis
 
@@ -876,7 +758,7 @@ class SlamFilter(_FrozenLog, _History):
         landmark's whitened residuals w = L⁻¹ (r − H̃ ε) are white, so Σ w / √k ~ N(0, I₄);
         a point on a moving vehicle drifts one way. Returns ``ok`` without the movers
         (they are rejected at once by :meth:`_reject`)."""
-        tracks = self.tracks
+        tracks = self._tracks
         w = np.linalg.solve(Lt, (r - Ht @ correction)[:, :, None])[:, :, 0]
         drift_sum, drift_n = tracks["drift_sum"], tracks["drift_n"]
         drift_sum[rows] += np.where(ok[:, None], w, 0.0)
@@ -892,19 +774,19 @@ class SlamFilter(_FrozenLog, _History):
     def _reject(self, t: int, ids: np.ndarray, rows: np.ndarray, ok: np.ndarray) -> None:
         """Step 4: a landmark whose observations failed the gate ``max_consecutive_gated``
         frames in a row leaves the state and enters the map flagged as rejected."""
-        bad = self.tracks.updated(ids, ok, t, self.stats, self.options.max_consecutive_gated, rows=rows)
+        bad = self._tracks.updated(ids, ok, t, self.stats, self.options.max_consecutive_gated, rows=rows)
         if bad.size:
-            self._freeze(self.state.slots_of(bad), LANDMARK_REJECTED)
+            self._freeze(self._state.slots_of(bad), LANDMARK_REJECTED)
 
     def _marginalize_ended(self, ids_seen: np.ndarray) -> None:
         """Step 5: landmarks not observed in this frame leave the state — dropping their
         rows and columns of Σ is the exact marginal of a Gaussian — and their mean and
         marginal covariance are frozen into the map (``keep_all_landmarks`` keeps them)."""
-        state = self.state
+        state = self._state
         if not self.options.keep_all_landmarks and state.n_landmarks:
             # a skipped repeat keeps its track alive
             self._freeze(np.flatnonzero(~in_sorted(state.landmark_ids, ids_seen)), LANDMARK_OK)
-        self.tracks.end_unseen_rejections(ids_seen)
+        self._tracks.end_unseen_rejections(ids_seen)
         self._pending.forget_unseen(ids_seen)
 
     def _initialize_new(self, t: int, ids: np.ndarray, z: np.ndarray, N_pose) -> None:
@@ -914,55 +796,55 @@ class SlamFilter(_FrozenLog, _History):
         good = initialization_guard(self.calibration.camera, z, self.options)
         self.stats.observations_not_initialized += int((~good).sum())
         if good.any():
-            g_ids, g_z = self._pending.admit(ids[good], z[good], t, self.state.imu_T_world, self._tau2_sum, self.stats)
+            g_ids, g_z = self._pending.admit(ids[good], z[good], t, self._state.imu_T_world, self._tau2_sum, self.stats)
             if g_ids.size:
-                slam_initialize_landmarks(self.state, self.model, g_ids, g_z, self._V, N_pose, self._velocity_var)
-                self.tracks.started(g_ids, t)
+                slam_initialize_landmarks(self._state, self._model, g_ids, g_z, self._V, N_pose, self._velocity_var)
+                self._tracks.started(g_ids, t)
                 self.stats.landmarks_initialized += int(g_ids.size)
                 self.stats.observations_used += int(g_ids.size)
 
     def _check_health(self, t: int) -> None:
         """Step 7: the state and Σ must stay finite and Σ's diagonal non-negative."""
-        if not self.state.is_finite():
+        if not self._state.is_finite():
             raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
-        if (np.diagonal(self.state.cov) < -1e-9).any():
+        if (np.diagonal(self._state.cov) < -1e-9).any():
             raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
 
     def _record(self, stats: FrameStats) -> None:
         super()._record(stats)
-        if self.imu_bias_model is not None:
-            self.imu_bias_log.append((stats.frame, self.state.imu_bias.copy()))
+        if self._imu_bias_model is not None:
+            self.diagnostics.imu_bias_log.append((stats.frame, self._state.imu_bias.copy()))
 
     def _require_healthy(self) -> None:
-        if self.failed is not None:
-            raise EstimationError(f"the filter stopped earlier ({self.failed}); start a new one")
+        if self.diagnostics.failed is not None:
+            raise EstimationError(f"the filter stopped earlier ({self.diagnostics.failed}); start a new one")
 
     # --- the map ------------------------------------------------------------------------
     def _freeze(self, slots: np.ndarray, status: int) -> None:
         """Move the landmarks in ``slots`` from the state into the map."""
         if slots.size == 0:
             return
-        state = self.state
+        state = self._state
         ids = state.landmark_ids[slots]
         p, cov = state.landmark_marginals(slots)
-        self._builder.add(ids, p, cov, *self.tracks.entry(ids), status, state.v_lm_in_world[slots])
+        self._builder.add(ids, p, cov, *self._tracks.entry(ids), status, state.v_lm_in_world[slots])
         self._log_frozen(ids, p, status == LANDMARK_REJECTED)
         state.remove_slots(slots)
         if status != LANDMARK_REJECTED:  # a rejected track stays (flagged) while in view
-            self.tracks.remove(ids)
+            self._tracks.remove(ids)
 
     def _freeze_rejected_new(self, ids: np.ndarray, p: np.ndarray, cov: np.ndarray) -> None:
         """A landmark rejected by the static check of delayed initialization (never in the state)."""
-        self._builder.add(ids, p, cov, *self.tracks.entry(ids), LANDMARK_REJECTED)
+        self._builder.add(ids, p, cov, *self._tracks.entry(ids), LANDMARK_REJECTED)
         self._log_frozen(ids, p, True)
 
     def finish(self) -> LandmarkMap:
         """Freeze the landmarks still in the state (after a failure, only those whose mean
         and covariance are finite) and return the whole map. The filter is done."""
-        state = self.state
+        state = self._state
         if state.n_landmarks:
             slots = np.arange(state.n_landmarks)
-            if self.failed is not None:
+            if self.diagnostics.failed is not None:
                 finite = np.all(np.isfinite(state.p_lm_in_world), axis=1)
                 finite &= np.all(np.isfinite(state.landmark_cov(slots)), axis=(1, 2))
                 slots = slots[finite]
@@ -991,9 +873,7 @@ class FinalPoses:
         for frame in self._frames:
             filt.step(frame)
             yield from filt.pop_final_poses()
-        drain = getattr(filt, "drain", None)  # the EKF with the stalled-track remap holds frames
-        if drain is not None:
-            drain()
+        filt.drain()  # the EKF with the stalled-track remap holds frames
         yield from filt.pop_final_poses()
         self.landmarks = filt.finish()  # the smoother's window is final only now
         yield from filt.pop_final_poses()

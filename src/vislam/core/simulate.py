@@ -68,7 +68,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass, fields
-from typing import Any, Mapping
+from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 
@@ -263,44 +263,53 @@ class SimulationOptions:
 
     def __post_init__(self):
         for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name in _FAULT_VECTOR_FIELDS:
+            self._normalize_field(f)
+        self._check_ranges()
+
+    def _normalize_field(self, f) -> None:
+        """Check one field's type (numbers finite, >= 0 but start_time_s) and store it as
+        its plain Python type."""
+        value = getattr(self, f.name)
+        if f.name in _FAULT_VECTOR_FIELDS:
+            object.__setattr__(self, f.name, _three_finite(f.name, value))
+            return
+        if f.name in ("time_offset_s", "velocity_shift"):
+            _check_fault_scalar(self, f.name, value)
+            return
+        if f.name == "velocity_scale":
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                    or not math.isfinite(value) or not 0.01 <= value <= 100:
+                raise ConfigError(f"velocity_scale must be a number in [0.01, 100], got {value!r}")
+            object.__setattr__(self, f.name, float(value))
+            return
+        if f.name == "lever_arm_swapped":
+            if not isinstance(value, (bool, np.bool_)):
+                raise ConfigError(f"lever_arm_swapped must be true or false, got {value!r}")
+            object.__setattr__(self, f.name, bool(value))
+            return
+        if f.name == "cam_T_imu_translation_m":
+            if value is not None:
                 object.__setattr__(self, f.name, _three_finite(f.name, value))
-                continue
-            if f.name in ("time_offset_s", "velocity_shift"):
-                _check_fault_scalar(self, f.name, value)
-                continue
-            if f.name == "velocity_scale":
-                if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-                        or not math.isfinite(value) or not 0.01 <= value <= 100:
-                    raise ConfigError(f"velocity_scale must be a number in [0.01, 100], got {value!r}")
-                object.__setattr__(self, f.name, float(value))
-                continue
-            if f.name == "lever_arm_swapped":
-                if not isinstance(value, (bool, np.bool_)):
-                    raise ConfigError(f"lever_arm_swapped must be true or false, got {value!r}")
-                object.__setattr__(self, f.name, bool(value))
-                continue
-            if f.name == "cam_T_imu_translation_m":
-                if value is not None:
-                    object.__setattr__(self, f.name, _three_finite(f.name, value))
-                continue
-            if f.name == "velocity_frame":
-                if value not in ("body", "level"):
-                    raise ConfigError(f"velocity_frame must be body or level, got {value!r}")
-                continue
-            if f.type in ("int", int):
-                if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-                    raise ConfigError(f"{f.name} must be an integer, got {value!r}")
-                object.__setattr__(self, f.name, int(value))
-            else:
-                if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-                    raise ConfigError(f"{f.name} must be a number, got {value!r}")
-                if not math.isfinite(value):
-                    raise ConfigError(f"{f.name} must be finite, got {value!r}")
-                object.__setattr__(self, f.name, float(value))
-                if f.name != "start_time_s" and value < 0:
-                    raise ConfigError(f"{f.name} must be >= 0, got {value!r}")
+            return
+        if f.name == "velocity_frame":
+            if value not in ("body", "level"):
+                raise ConfigError(f"velocity_frame must be body or level, got {value!r}")
+            return
+        if f.type in ("int", int):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ConfigError(f"{f.name} must be an integer, got {value!r}")
+            object.__setattr__(self, f.name, int(value))
+        else:
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                raise ConfigError(f"{f.name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise ConfigError(f"{f.name} must be finite, got {value!r}")
+            object.__setattr__(self, f.name, float(value))
+            if f.name != "start_time_s" and value < 0:
+                raise ConfigError(f"{f.name} must be >= 0, got {value!r}")
+
+    def _check_ranges(self) -> None:
+        """The fields' joint ranges (a road, a camera, a drive of at least two frames)."""
         if self.seed < 0:
             raise ConfigError(f"seed must be >= 0, got {self.seed}")
         if self.n_frames < 2:
@@ -782,9 +791,41 @@ class _Landmarks:
 
 
 def _static_landmarks(opts: SimulationOptions, path: _Path, rng: np.random.Generator) -> _Landmarks:
+    """The static scene: roadside points (:func:`_roadside_points`) not standing on
+    another stretch of the road, and background points 15-45 m from it."""
     from scipy.spatial import cKDTree  # lazy: keeps `import vislam` light
 
     s_end = float(path.arc[-1])
+    s_all, lat_all, h_all, kind_all = _roadside_points(opts, s_end, rng)
+    keep = (s_all >= 0.0) & (s_all <= s_end)
+    s_all, lat_all, h_all, kind_all = s_all[keep], lat_all[keep], h_all[keep], kind_all[keep]
+    p = path.roadside_point(s_all, lat_all, h_all, opts.ground_below_imu_m)
+
+    # Drop points standing on another stretch of the road (inside corners, crossings).
+    road_xyz = path.position_at(np.arange(0.0, s_end, 0.5))
+    tree = cKDTree(road_xyz[:, :2])
+    dist, _ = tree.query(p[:, :2])
+    keep = dist >= 0.85 * np.abs(lat_all)
+    p, kind_all = p[keep], kind_all[keep]
+
+    bg = _background_points(opts, road_xyz, tree, rng)
+    p = np.concatenate([p, bg])
+    kind_all = np.concatenate([kind_all, np.full(bg.shape[0], _BACKGROUND, dtype=np.int8)])
+    m = p.shape[0]
+    return _Landmarks(
+        p_ref=p,
+        t_ref=np.zeros(m),
+        velocity=np.zeros((m, 3)),
+        kind=kind_all,
+        vehicle=np.full(m, -1, dtype=np.int64),
+        detection_range=rng.uniform(opts.min_detection_range_m, opts.max_range_m, m),
+        max_track=rng.geometric(opts.track_loss_probability, m).astype(np.int64),
+    )
+
+
+def _roadside_points(opts: SimulationOptions, s_end: float, rng: np.random.Generator) -> tuple:
+    """Façades, poles, parked cars and ground points on both sides of the road:
+    (arc length, lateral offset, height, kind) per point."""
     ss, lat, height, kind = [], [], [], []
 
     def add(s_, lat_, h_, k_):
@@ -826,23 +867,13 @@ def _static_landmarks(opts: SimulationOptions, path: _Path, rng: np.random.Gener
         # Ground points (markings, curbs), scattered along the road.
         n = rng.poisson(opts.ground_density_per_m * s_end)
         add(rng.uniform(0.0, s_end, n), side * rng.uniform(1.5, 8.0, n), np.zeros(n), _GROUND)
+    return (np.concatenate(ss) if ss else np.zeros(0), np.concatenate(lat) if lat else np.zeros(0),
+            np.concatenate(height) if height else np.zeros(0),
+            np.concatenate(kind) if kind else np.zeros(0, dtype=np.int8))
 
-    s_all = np.concatenate(ss) if ss else np.zeros(0)
-    lat_all = np.concatenate(lat) if lat else np.zeros(0)
-    h_all = np.concatenate(height) if height else np.zeros(0)
-    kind_all = np.concatenate(kind) if kind else np.zeros(0, dtype=np.int8)
-    keep = (s_all >= 0.0) & (s_all <= s_end)
-    s_all, lat_all, h_all, kind_all = s_all[keep], lat_all[keep], h_all[keep], kind_all[keep]
-    p = path.roadside_point(s_all, lat_all, h_all, opts.ground_below_imu_m)
 
-    # Drop points standing on another stretch of the road (inside corners, crossings).
-    road_xyz = path.position_at(np.arange(0.0, s_end, 0.5))
-    tree = cKDTree(road_xyz[:, :2])
-    dist, _ = tree.query(p[:, :2])
-    keep = dist >= 0.85 * np.abs(lat_all)
-    p, kind_all = p[keep], kind_all[keep]
-
-    # Background: uniform over the area 15-45 m from the road (cells of 45 m along it).
+def _background_points(opts: SimulationOptions, road_xyz: np.ndarray, tree, rng: np.random.Generator) -> np.ndarray:
+    """Background: uniform over the area 15-45 m from the road (cells of 45 m along it), (n, 3)."""
     cell = 45.0
     cells = np.unique(np.floor(road_xyz[:, :2] / cell).astype(np.int64), axis=0)
     cells = np.unique((cells[:, None, :] + np.array([[i, j] for i in (-1, 0, 1) for j in (-1, 0, 1)])).reshape(-1, 2),
@@ -852,19 +883,7 @@ def _static_landmarks(opts: SimulationOptions, path: _Path, rng: np.random.Gener
     height = rng.uniform(0.0, 12.0, xy.shape[0])
     dist, nearest = tree.query(xy)
     ok = (dist >= 15.0) & (dist <= 45.0)
-    bg = np.column_stack([xy[ok], road_xyz[nearest[ok], 2] - opts.ground_below_imu_m + height[ok]])
-    p = np.concatenate([p, bg])
-    kind_all = np.concatenate([kind_all, np.full(bg.shape[0], _BACKGROUND, dtype=np.int8)])
-    m = p.shape[0]
-    return _Landmarks(
-        p_ref=p,
-        t_ref=np.zeros(m),
-        velocity=np.zeros((m, 3)),
-        kind=kind_all,
-        vehicle=np.full(m, -1, dtype=np.int64),
-        detection_range=rng.uniform(opts.min_detection_range_m, opts.max_range_m, m),
-        max_track=rng.geometric(opts.track_loss_probability, m).astype(np.int64),
-    )
+    return np.column_stack([xy[ok], road_xyz[nearest[ok], 2] - opts.ground_below_imu_m + height[ok]])
 
 
 def _vehicle_landmarks(opts: SimulationOptions, path: _Path, ego_arc: np.ndarray, timestamps: np.ndarray,
@@ -1049,16 +1068,55 @@ def _tracks(pairs: _Pairs, landmarks: _Landmarks, opts: SimulationOptions) -> np
 
 
 def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
-    """Simulate a drive (see the module docstring) from ``options`` (defaults if None)."""
+    """Simulate a drive (see the module docstring) from ``options`` (defaults if None):
+    the trajectory (:func:`_ego_motion`), the scene and its observations
+    (:func:`_scene`), then what the sensors record (:func:`_recording`)."""
     opts = options if options is not None else SimulationOptions()
     if not isinstance(opts, SimulationOptions):
         raise ConfigError(f"simulate_drive expects SimulationOptions, got {type(opts).__name__}")
     children = np.random.SeedSequence(opts.seed).spawn(len(_STREAMS))
     streams = {name: np.random.default_rng(child) for name, child in zip(_STREAMS, children)}
     camera = kitti_stereo_camera(opts.image_width_px, opts.image_height_px)
-    T = opts.n_frames
+    ego = _ego_motion(opts, streams)
+    cam_T_imu = KITTI_CAM_T_IMU
+    if opts.cam_T_imu_translation_m is not None:
+        cam_T_imu = cam_T_imu.copy()
+        cam_T_imu[:3, 3] = opts.cam_T_imu_translation_m
+    scene = _scene(opts, ego, cam_T_imu, camera, streams)
+    sequence, is_outlier, true_pixels = _recording(opts, ego, cam_T_imu, camera, scene, streams)
+    drive = SimulatedDrive(
+        options=opts,
+        sequence=sequence,
+        world_T_imu=ego.world_T_imu,
+        true_velocities=ego.true_velocities,
+        p_lm_in_world=scene.p_first,
+        landmark_is_moving=scene.is_moving,
+        landmark_velocity_in_world=scene.velocity,
+        landmark_first_frame=scene.first_frame,
+        landmark_kind=scene.kind,
+        landmark_vehicle_id=scene.vehicle_id,
+        observation_is_outlier=is_outlier,
+        observation_true_pixels=true_pixels,
+    )
+    logger.info("simulated %s: %d frames, %d landmarks, %d observations", sequence.name, opts.n_frames,
+                scene.n_landmarks, scene.pairs.pixels.shape[0])
+    return drive
 
-    # --- the ego motion (extended past the last frame so the road ahead exists) -----------
+
+class _EgoMotion(NamedTuple):
+    """The simulated trajectory: the road's centre path (extended past the last frame so
+    the road ahead exists), the true IMU poses, twists, timestamps and arc length per frame."""
+
+    path: "_Path"
+    world_T_imu: np.ndarray
+    true_velocities: np.ndarray
+    timestamps: np.ndarray
+    arc: np.ndarray
+
+
+def _ego_motion(opts: SimulationOptions, streams: dict) -> _EgoMotion:
+    """The ego motion along a random road, driven past the last frame by the sensors' range."""
+    T = opts.n_frames
     period = 1.0 / opts.frame_rate_hz
     margin_m = opts.max_range_m + 40.0
     n_extra = int(math.ceil(margin_m / (opts.min_speed_mps * (period - 2 * opts.timestamp_jitter_s)))) + 2
@@ -1071,60 +1129,61 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
         raise AssertionError("simulated road too short")
     keep_ext = int(np.searchsorted(arc_ext, s_stop)) + 1
     path = _Path.from_poses(poses_ext[:keep_ext], arc_ext[:keep_ext])
-    world_T_imu = poses_ext[:T]
-    true_velocities = twists_ext[:T]
-    timestamps = timestamps_ext[:T]
-    ego_arc = arc_ext[:T]
+    return _EgoMotion(path, poses_ext[:T], twists_ext[:T], timestamps_ext[:T], arc_ext[:T])
 
-    cam_T_imu = KITTI_CAM_T_IMU
-    if opts.cam_T_imu_translation_m is not None:
-        cam_T_imu = cam_T_imu.copy()
-        cam_T_imu[:3, 3] = opts.cam_T_imu_translation_m
-    cam_T_world = cam_T_imu @ se3_inverse(world_T_imu)
-    camera_positions = (world_T_imu @ se3_inverse(cam_T_imu))[:, :3, 3]
 
-    # --- static landmarks ---------------------------------------------------------------
-    static = _static_landmarks(opts, path, streams["static"])
+class _Scene(NamedTuple):
+    """The landmarks that are observed, numbered by first observation, and their
+    observations sorted by (frame, id)."""
+
+    pairs: "_Pairs"
+    ids: np.ndarray  # landmark id of each observation
+    n_landmarks: int
+    p_first: np.ndarray  # (m, 3) position at the first observation
+    velocity: np.ndarray  # (m, 3) world velocity (0 for static landmarks)
+    first_frame: np.ndarray
+    is_moving: np.ndarray
+    kind: np.ndarray
+    vehicle_id: np.ndarray
+
+
+def _scene(opts: SimulationOptions, ego: _EgoMotion, cam_T_imu: np.ndarray, camera, streams: dict) -> _Scene:
+    """Static landmarks along the road, a share of them replaced by points on moving
+    vehicles, and their stereo observations."""
+    cam_T_world = cam_T_imu @ se3_inverse(ego.world_T_imu)
+    camera_positions = (ego.world_T_imu @ se3_inverse(cam_T_imu))[:, :3, 3]
+    static = _static_landmarks(opts, ego.path, streams["static"])
     pairs_s = _static_pairs(opts, cam_T_world, camera_positions, static, camera, streams["static_noise"])
     pairs_s = pairs_s.take(_tracks(pairs_s, static, opts))
     observed_static = np.unique(pairs_s.lm)
     n_total = observed_static.size
-
-    # --- moving landmarks replace a share of the static ones ---------------------------
+    # moving landmarks replace a share of the static ones
     n_moving = int(round(opts.moving_fraction * n_total))
     sel_rng = streams["selection"]
     keep_static = np.sort(sel_rng.choice(observed_static, size=n_total - n_moving, replace=False))
     pairs_s = pairs_s.take(np.isin(pairs_s.lm, keep_static))
     moving_parts: list[tuple[_Landmarks, _Pairs]] = []
     if n_moving > 0:
-        moving_parts = _moving_landmarks(opts, path, ego_arc, timestamps, cam_T_world, camera, streams, n_moving)
-
-    # --- assemble: landmarks, then observations sorted by (frame, id) ----------------------
-    p_ref = [static.p_ref]
-    t_ref = [static.t_ref]
-    vel = [static.velocity]
-    kind = [static.kind]
-    vehicle = [static.vehicle]
-    lm_pairs = [pairs_s]
-    offset = static.p_ref.shape[0]
-    for lms, prs in moving_parts:
-        p_ref.append(lms.p_ref)
-        t_ref.append(lms.t_ref)
-        vel.append(lms.velocity)
-        kind.append(lms.kind)
-        vehicle.append(lms.vehicle)
-        prs = dataclasses.replace(prs, lm=prs.lm + offset)
-        lm_pairs.append(prs)
+        moving_parts = _moving_landmarks(opts, ego.path, ego.arc, ego.timestamps, cam_T_world, camera, streams,
+                                         n_moving)
+    parts = [(static, pairs_s)] + moving_parts
+    lm_pairs, offset = [], 0
+    for lms, prs in parts:
+        lm_pairs.append(prs if offset == 0 else dataclasses.replace(prs, lm=prs.lm + offset))
         offset += lms.p_ref.shape[0]
-    p_ref, t_ref, vel = np.concatenate(p_ref), np.concatenate(t_ref), np.concatenate(vel)
-    kind, vehicle = np.concatenate(kind), np.concatenate(vehicle)
-    pairs = _Pairs.concat(lm_pairs)
+    landmarks = {name: np.concatenate([getattr(lms, name) for lms, _ in parts])
+                 for name in ("p_ref", "t_ref", "velocity", "kind", "vehicle")}
+    return _numbered(_Pairs.concat(lm_pairs), landmarks, ego.timestamps, sel_rng)
 
+
+def _numbered(pairs: "_Pairs", landmarks: dict, timestamps: np.ndarray, sel_rng) -> _Scene:
+    """Landmarks of the observations, numbered by first observation frame (ties broken
+    at random, not by kind), the observations sorted by (frame, id); vehicles numbered
+    0, 1, ... in the order they are first seen."""
     used, lm_local = np.unique(pairs.lm, return_inverse=True)
     m = used.size
     first_frame = np.full(m, np.iinfo(np.int64).max)
     np.minimum.at(first_frame, lm_local, pairs.frame)
-    # Ids by first observation frame; ties broken at random (not by kind).
     tie = sel_rng.permutation(m)
     by_first = np.lexsort((tie, first_frame))
     new_id = np.empty(m, dtype=np.int64)
@@ -1134,14 +1193,14 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
     pairs = pairs.take(obs_order)
     ids = ids[obs_order]
 
+    p_ref, t_ref, kind, vehicle = landmarks["p_ref"], landmarks["t_ref"], landmarks["kind"], landmarks["vehicle"]
     lm_of_id = used[by_first]
     first_frame_id = first_frame[by_first]
-    velocity_id = vel[lm_of_id]
+    velocity_id = landmarks["velocity"][lm_of_id]
     p_first = p_ref[lm_of_id] + velocity_id * (timestamps[first_frame_id] - t_ref[lm_of_id])[:, None]
     is_moving = kind[lm_of_id] == _VEHICLE
     p_first[~is_moving] = p_ref[lm_of_id][~is_moving]
     velocity_id[~is_moving] = 0.0
-    # Vehicles numbered 0, 1, ... in the order they are first seen.
     vehicle_id = np.full(m, -1, dtype=np.int64)
     if np.any(is_moving):
         raw = vehicle[lm_of_id][is_moving]
@@ -1149,8 +1208,16 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
         rank = np.empty(uniq.size, dtype=np.int64)
         rank[np.argsort(first_pos)] = np.arange(uniq.size)
         vehicle_id[is_moving] = rank[inverse]
+    return _Scene(pairs, ids, m, p_first, velocity_id, first_frame_id, is_moving, kind[lm_of_id], vehicle_id)
 
-    # --- outliers -------------------------------------------------------------------------
+
+def _recording(opts: SimulationOptions, ego: _EgoMotion, cam_T_imu: np.ndarray, camera, scene: _Scene,
+               streams: dict) -> tuple[Sequence, np.ndarray, np.ndarray]:
+    """What the sensors record: the pixels with gross outliers and stalled tracks, the
+    velocities with white noise (levelled, with the recording faults asked for).
+    Returns (the sequence, outlier flag and true pixels per observation)."""
+    T = opts.n_frames
+    pairs, ids = scene.pairs, scene.ids
     pixels = pairs.pixels.copy()
     n_obs = pixels.shape[0]
     is_outlier = np.zeros(n_obs, dtype=bool)
@@ -1160,52 +1227,35 @@ def simulate_drive(options: SimulationOptions | None = None) -> SimulatedDrive:
         pixels[out_idx] = _gross_mismatches(pairs.true_pixels[out_idx], opts, streams["outliers"])
         is_outlier[out_idx] = True
 
-    # --- velocities -------------------------------------------------------------------------
     vel_noise = streams["velocity_noise"].standard_normal((T, 6))
     sigma = np.array([opts.velocity_noise_mps] * 3 + [opts.angular_noise_radps] * 3)
-    recorded = true_velocities
+    recorded = ego.true_velocities
     if opts.velocity_frame == "level":  # turned with the attitude at the interval's start
-        recorded = true_velocities.copy()
-        start = world_T_imu[np.maximum(np.arange(T) - 1, 0)]
-        recorded[:, :3] = body_to_level(se3_inverse(start), true_velocities[:, :3])
+        recorded = ego.true_velocities.copy()
+        start = ego.world_T_imu[np.maximum(np.arange(T) - 1, 0)]
+        recorded[:, :3] = body_to_level(se3_inverse(start), ego.true_velocities[:, :3])
     measured = recorded + sigma * vel_noise
     recorded_cam_T_imu = cam_T_imu
     if opts.has_recording_faults:
-        measured, recorded_cam_T_imu = _apply_recording_faults(opts, timestamps, measured, cam_T_imu)
+        measured, recorded_cam_T_imu = _apply_recording_faults(opts, ego.timestamps, measured, cam_T_imu)
 
     true_pixels = pairs.true_pixels
     if opts.stall_period > 0:
         pixels, true_pixels, is_outlier = _stall_tracks(pairs.frame, ids, opts.stall_period,
                                                         (pixels, true_pixels, is_outlier))
-
     offsets = np.zeros(T + 1, dtype=np.int64)
     np.cumsum(np.bincount(pairs.frame, minlength=T), out=offsets[1:])
     sequence = Sequence(
         name=f"sim-{opts.seed}",
-        timestamps_s=timestamps,
+        timestamps_s=ego.timestamps,
         linear_velocity_in_imu_mps=measured[:, :3],
         angular_velocity_in_imu_radps=measured[:, 3:],
-        observations=StereoObservations(offsets, ids, pixels, m),
+        observations=StereoObservations(offsets, ids, pixels, scene.n_landmarks),
         camera=camera,
         cam_T_imu=recorded_cam_T_imu,
         source="simulator",
     )
-    drive = SimulatedDrive(
-        options=opts,
-        sequence=sequence,
-        world_T_imu=world_T_imu,
-        true_velocities=true_velocities,
-        p_lm_in_world=p_first,
-        landmark_is_moving=is_moving,
-        landmark_velocity_in_world=velocity_id,
-        landmark_first_frame=first_frame_id,
-        landmark_kind=kind[lm_of_id],
-        landmark_vehicle_id=vehicle_id,
-        observation_is_outlier=is_outlier,
-        observation_true_pixels=true_pixels,
-    )
-    logger.info("simulated %s: %d frames, %d landmarks, %d observations", sequence.name, T, m, n_obs)
-    return drive
+    return sequence, is_outlier, true_pixels
 
 
 def _moving_landmarks(opts, path, ego_arc, timestamps, cam_T_world, camera, streams, n_needed):

@@ -70,7 +70,10 @@ import time
 import numpy as np
 
 from vislam.core.bookkeeping import MapBuilder, RepeatDetector, sorted_positions
-from vislam.core.filters import FrameStats, _check_dt, _History, _observations, _StatsDelta, _twist
+from vislam.core.contract import FrameStats, FrameStatsCounter, LandmarkEstimates, StepwiseFilter
+from vislam.core.contract import checked_dt as _check_dt
+from vislam.core.contract import checked_observations as _observations
+from vislam.core.contract import twist as _twist
 from vislam.core.lie import se3_inverse
 from vislam.core.propagation import body_to_level, body_twist
 from vislam.core.options import FilterOptions
@@ -213,7 +216,21 @@ class _Landmark:
         self.consecutive, self.rejected, self.stamp = 0, False, stamp
 
 
-class SmootherFilter(_History):
+class _NewFactors:
+    """What one frame adds to the window: the factor graph, initial values and time
+    stamps of the update, and its stereo factors' entries (their graph positions become
+    the smoother's factor indices after the update) and ``added`` (landmark, pose frame,
+    pixels, entry) of the observations of landmarks already in the window."""
+
+    __slots__ = ("graph", "values", "stamps", "entries", "added")
+
+    def __init__(self, graph, values, stamps: dict):
+        self.graph, self.values, self.stamps = graph, values, stamps
+        self.entries: list = []
+        self.added: list = []
+
+
+class SmootherFilter(StepwiseFilter):
     """Fixed-lag smoother with the stepwise API of the EKFs (see the module docstring).
 
     ``calibration``: ``sequence.calibration`` (camera and cam_T_imu); ``options``: a
@@ -225,13 +242,14 @@ class SmootherFilter(_History):
 
     def __init__(self, calibration: Calibration, options: FilterOptions | None = None):
         gtsam = self._g = _gtsam()
+        self._init_history()  # and the diagnostics: failed, drift_log, timings
         self.calibration = calibration
         self.options = opts = options or FilterOptions()
         cam = calibration.camera
-        self.model = StereoModel(cam, calibration.cam_T_imu)
+        self._model = StereoModel(cam, calibration.cam_T_imu)
         self._V = opts.V
         self._K = gtsam.Cal3_S2Stereo(cam.fsu, cam.fsv, 0.0, cam.cu, cam.cv, cam.baseline_m)
-        self._body_P_sensor = gtsam.Pose3(_rigid(self.model.imu_T_cam))
+        self._body_P_sensor = gtsam.Pose3(_rigid(self._model.imu_T_cam))
         s = opts.pixel_noise_px if opts.smoother_pixel_noise_px is None else opts.smoother_pixel_noise_px
         self._sigmas = np.array([s, s, s / np.sqrt(2.0)])
         base = gtsam.noiseModel.Diagonal.Sigmas(self._sigmas)
@@ -251,12 +269,11 @@ class SmootherFilter(_History):
         self._remap = opts.stalled_tracks == "remap"
 
         self.stats = RunStats()
-        self._delta = _StatsDelta(self.stats)
+        self._delta = FrameStatsCounter(self.stats)
         self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats, calibration.camera)
         self._builder = MapBuilder()
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
-        self.failed: str | None = None
         self._time = 0.0  # seconds since the first frame
         self._pending_odometry = None  # (τ, u) of the next frame
         # window contents
@@ -283,10 +300,8 @@ class SmootherFilter(_History):
         self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
         self._unchecked: tuple = (-1, [])  # (frame, observations, factor indices) not yet checked
         self._drift_gate = np.inf if opts.smoother_drift_ratio is None else float(opts.smoother_drift_ratio)
-        self.drift_log: list | None = None  # a list: (id, n, statistic / median, speed, frame) per test
         self._fresh: set[int] = set()  # frames whose _pose_value is from the latest update
-        self.timings = {"marginals_s": 0.0, "update_s": 0.0}
-        self._init_history()
+        self.diagnostics.timings = {"marginals_s": 0.0, "update_s": 0.0}
 
     # --- read access ----------------------------------------------------------------
     @property
@@ -316,6 +331,12 @@ class SmootherFilter(_History):
         if not lms:
             return np.zeros((0, 3))
         return np.array([self._smoother.calculateEstimatePoint3(self._L(lm.key)) for lm in lms])
+
+    def landmark_estimates(self) -> LandmarkEstimates:
+        """The landmarks in the window (not rejected) as world points; their covariances
+        are NaN (computed only when a landmark leaves the window)."""
+        ids = self.live_landmark_ids
+        return LandmarkEstimates(ids, self.live_p_lm_in_world, np.full((ids.size, 3, 3), np.nan))
 
     def frozen_map(self) -> LandmarkMap:
         """The landmarks marginalized so far (a copy)."""
@@ -382,14 +403,14 @@ class SmootherFilter(_History):
         try:
             self._frame(t, ids_seen, z)
         except EstimationError as exc:
-            self.failed = str(exc)
+            self.diagnostics.failed = str(exc)
             raise
         except RuntimeError as exc:  # gtsam: indeterminate system, cheirality, ... (messages of several lines)
-            self.failed = f"numerical failure at frame {t}: {_one_line(exc)}"
-            raise EstimationError(self.failed, frame=t) from exc
+            self.diagnostics.failed = f"numerical failure at frame {t}: {_one_line(exc)}"
+            raise EstimationError(self.diagnostics.failed, frame=t) from exc
         except Exception as exc:  # noqa: BLE001 - any other failure inside GTSAM or here: one line, a partial result
-            self.failed = f"failure at frame {t}: {type(exc).__name__}: {_one_line(exc)}"
-            raise EstimationError(self.failed, frame=t) from exc
+            self.diagnostics.failed = f"failure at frame {t}: {type(exc).__name__}: {_one_line(exc)}"
+            raise EstimationError(self.diagnostics.failed, frame=t) from exc
         self.stats.frames_processed += 1
         n_live = sum(1 for lm in self._landmarks.values() if not lm.rejected)
         self.stats.max_state_landmarks = max(self.stats.max_state_landmarks, len(self._landmarks))
@@ -398,8 +419,30 @@ class SmootherFilter(_History):
         return self.last_frame_stats
 
     def _frame(self, t: int, ids_seen: np.ndarray, z: np.ndarray) -> None:
-        g, opts = self._g, self.options
-        graph, values, stamps = g.NonlinearFactorGraph(), g.Values(), {}
+        """One frame, in the EKF's order of steps (see :meth:`vislam.core.filters.SlamFilter.update`)."""
+        g = self._g
+        new = _NewFactors(g.NonlinearFactorGraph(), g.Values(), {})
+        X = self._X(t)
+        self._predict_pose(t, new)  # the motion model (the EKF's predict)
+        now = self._time
+        cutoff = now - self._window
+        rep, lag = self._select(ids_seen, z, t)  # repeats, stall counts, tracks (its _select)
+        pending = self._add_observations(t, ids_seen, z, rep, lag, now, cutoff, new)  # in the window (_update_live)
+        if pending[0]:
+            self._initialize_new(t, *pending, now, new)  # new landmarks (its _initialize_new)
+        # what leaves the window in this update (its _marginalize_ended): final values and marginals first
+        self._marginalize(cutoff)
+        self._update_window(t, X, new)
+        # gate and reject (its _reject): the previous frame's observations, whose poses and
+        # landmarks have had two updates now; those that fail are removed with the next update
+        previous, self._unchecked = self._unchecked, (t, new.added)
+        self._check_outliers(*previous)
+
+    def _predict_pose(self, t: int, new: "_NewFactors") -> None:
+        """Step 1: the pose X(t) with its factor: the prior at the identity for the first
+        frame, else the motion model from X(t−1) with the pending odometry (its initial
+        value the latest estimate moved by it)."""
+        g = self._g
         X = self._X(t)
         if t == 0:
             pose = np.eye(4)
@@ -425,15 +468,16 @@ class SmootherFilter(_History):
             self._odometry_factors.append(f)
             self._time += tau
         self._pending_odometry = None
-        graph.add(f)
-        values.insert(X, g.Pose3(pose))
-        now = self._time
-        stamps[X] = now
-        self._pose_stamp[t] = now
+        new.graph.add(f)
+        new.values.insert(X, g.Pose3(pose))
+        new.stamps[X] = self._time
+        self._pose_stamp[t] = self._time
         self._pose_value[t] = pose
-        cutoff = now - self._window
 
-        # observations: repeats, stall counts, tracks
+    def _select(self, ids_seen: np.ndarray, z: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """Step 2: the frame's exact repeats and each observation's stall count (the
+        remap attaches it to pose t − lag); tracks not seen end, rejected ones out of view
+        are forgotten. Returns (repeat mask, lag)."""
         rep = self._repeated(t, ids_seen, z)
         pos, hit = sorted_positions(ids_seen, self._prev_ids)
         lag = np.where(hit, self._prev_lag[pos] if self._prev_ids.size else 0, 0)
@@ -444,12 +488,14 @@ class SmootherFilter(_History):
         for i in ended:
             del self._tracks[i]
         self._rejected_ids &= set(ids_seen.tolist())
+        return rep, lag
 
+    def _add_observations(self, t: int, ids_seen: np.ndarray, z: np.ndarray, rep: np.ndarray, lag: np.ndarray,
+                          now: float, cutoff: float, new: "_NewFactors") -> tuple[list, list, list]:
+        """Step 3: a stereo factor for each observation of a landmark in the window (not
+        a repeat, not rejected, its remapped pose still in the window). Returns (ids,
+        pixels, pose frames) of the observations of new tracks."""
         new_ids, new_z, new_frame = [], [], []
-        # per stereo factor [frame of its pose, index in _stereo_factors, position in `graph`
-        # (after the update: the smoother's factor index; -1 once removed)]
-        entries = []
-        added = []  # (landmark, frame of the pose, pixels) of the stereo factors added
         for i in np.flatnonzero(~rep):
             lm_id = int(ids_seen[i])
             if lm_id in self._rejected_ids:
@@ -466,65 +512,68 @@ class SmootherFilter(_History):
                 continue
             lm = self._landmarks[key]
             lm.stamp = now
-            stamps[self._L(key)] = now
-            entry = [k, len(self._stereo_factors), graph.size(), z[i], False]
+            new.stamps[self._L(key)] = now
+            entry = [k, len(self._stereo_factors), new.graph.size(), z[i], False]
             lm.obs.append(entry)
-            entries.append(entry)
-            added.append((lm, k, z[i], entry))
-            graph.add(self._stereo(z[i], k, key))
+            new.entries.append(entry)
+            new.added.append((lm, k, z[i], entry))
+            new.graph.add(self._stereo(z[i], k, key))
+        return new_ids, new_z, new_frame
 
-        if new_ids:
-            new_z = np.array(new_z)
-            good = initialization_guard(self.calibration.camera, new_z, opts)
-            self.stats.observations_not_initialized += int((~good).sum())
-            new_frame = np.array(new_frame)
-            for k in np.unique(new_frame[good]):
-                sel = np.flatnonzero(good & (new_frame == k))
-                p_w, _ = mapping_initialize(self.model, se3_inverse(self._pose_value[int(k)]), new_z[sel], self._V)
-                for j, p in zip(sel, p_w):
-                    key = self._next_key
-                    self._next_key += 1
-                    lm = _Landmark(key, new_ids[j], t, now)
-                    self._landmarks[key] = lm
-                    self._tracks[new_ids[j]] = key
-                    L = self._L(key)
-                    values.insert(L, p)
-                    stamps[L] = now
-                    prior = g.PriorFactorPoint3(L, p, self._lm_prior)
-                    self._prior_factors.append(prior)
-                    graph.add(prior)
-                    entry = [int(k), len(self._stereo_factors), graph.size(), new_z[j], True]
-                    lm.obs.append(entry)
-                    entries.append(entry)
-                    graph.add(self._stereo(new_z[j], int(k), key))
-                    self.stats.landmarks_initialized += 1
-                    self.stats.observations_used += 1
+    def _initialize_new(self, t: int, new_ids: list, new_z: list, new_frame: list, now: float,
+                        new: "_NewFactors") -> None:
+        """Step 6: new landmarks from the EKF's initialization guards and the stereo
+        model's inverse at their pose's latest estimate, each with a weak prior and its
+        first stereo factor."""
+        g = self._g
+        new_z = np.array(new_z)
+        good = initialization_guard(self.calibration.camera, new_z, self.options)
+        self.stats.observations_not_initialized += int((~good).sum())
+        new_frame = np.array(new_frame)
+        for k in np.unique(new_frame[good]):
+            sel = np.flatnonzero(good & (new_frame == k))
+            p_w, _ = mapping_initialize(self._model, se3_inverse(self._pose_value[int(k)]), new_z[sel], self._V)
+            for j, p in zip(sel, p_w):
+                key = self._next_key
+                self._next_key += 1
+                lm = _Landmark(key, new_ids[j], t, now)
+                self._landmarks[key] = lm
+                self._tracks[new_ids[j]] = key
+                L = self._L(key)
+                new.values.insert(L, p)
+                new.stamps[L] = now
+                prior = g.PriorFactorPoint3(L, p, self._lm_prior)
+                self._prior_factors.append(prior)
+                new.graph.add(prior)
+                entry = [int(k), len(self._stereo_factors), new.graph.size(), new_z[j], True]
+                lm.obs.append(entry)
+                new.entries.append(entry)
+                new.graph.add(self._stereo(new_z[j], int(k), key))
+                self.stats.landmarks_initialized += 1
+                self.stats.observations_used += 1
 
-        # what leaves the window in this update: final values and marginals first
-        self._marginalize(cutoff)
-
+    def _update_window(self, t: int, X: int, new: "_NewFactors") -> None:
+        """The window's update with the frame's factors (and the removal of those gated
+        after the previous frame): the newest pose's estimate (and marginal), and the
+        smoother's index of every stereo factor added."""
         tic = time.perf_counter()
         remove, self._to_remove = self._to_remove, []
-        self._smoother.update(graph, values, stamps, remove)
-        n_new = graph.size()
+        self._smoother.update(new.graph, new.values, new.stamps, remove)
+        n_new = new.graph.size()
         factor_index = list(self._smoother.getISAM2Result().getNewFactorsIndices())
         self._current = self._smoother.calculateEstimatePose3(X).matrix()
         self._pose_value[t] = self._current
         self._fresh = {t}
-        self.timings["update_s"] += time.perf_counter() - tic
+        self.diagnostics.timings["update_s"] += time.perf_counter() - tic
         if self.options.smoother_pose_covariance:
             tic = time.perf_counter()
             self._current_cov = self._online_cov[t] = to_ekf_covariance(self._smoother.marginalCovariance(X))
-            self.timings["marginals_s"] += time.perf_counter() - tic
+            self.diagnostics.timings["marginals_s"] += time.perf_counter() - tic
         if len(factor_index) != n_new:  # pragma: no cover - gtsam contract
             raise EstimationError(f"gtsam returned {len(factor_index)} factor indices for {n_new} factors", frame=t)
         # graph order: the pose factor, the stereo factors of `added`, then (prior, stereo) per new landmark
-        for entry in entries:
+        for entry in new.entries:
             entry[2] = int(factor_index[entry[2]])
-        # check the previous frame's observations (their poses and landmarks have had two
-        # updates now); those that fail are removed with the next update
-        previous, self._unchecked = self._unchecked, (t, added)
-        self._check_outliers(*previous)
 
     def _stereo(self, pix: np.ndarray, k: int, key: int):
         g = self._g
@@ -606,14 +655,7 @@ class SmootherFilter(_History):
 
         A landmark that fails both is rejected and all its factors still in the window
         are removed with the next update: they have been pulling the poses."""
-        seen, todo = set(), []
-        for lm in lms:
-            if lm.rejected or lm.key in seen:
-                continue
-            seen.add(lm.key)
-            obs = [e for e in lm.obs if e[4] and e[2] >= 0 and e[0] in self._pose_stamp]
-            if len(obs) >= 3:
-                todo.append((lm, obs))
+        todo = self._drift_candidates(lms)
         if len(todo) < _MIN_DRIFT_POPULATION:
             return
         n = len(todo)
@@ -646,18 +688,36 @@ class SmootherFilter(_History):
         if np.any(moving):
             speed = self._apparent_speed(world_T_imu, p[owner], frames, r, front, starts)
             moving &= speed > self.options.smoother_drift_min_speed_mps
-        if self.drift_log is not None:
-            self.drift_log.extend(zip([lm.id for lm, _ in todo], cnt.tolist(), (stat / max(typical, 1e-12)).tolist(),
-                                      speed.tolist(), [self.frame_index] * n))
+        drift_log = self.diagnostics.drift_log
+        if drift_log is not None:
+            drift_log.extend(zip([lm.id for lm, _ in todo], cnt.tolist(), (stat / max(typical, 1e-12)).tolist(),
+                                 speed.tolist(), [self.frame_index] * n))
         for j in np.flatnonzero(moving).tolist():
-            lm = todo[j][0]
-            lm.rejected = True
-            self.stats.landmarks_rejected += 1
-            self.stats.landmarks_moving += 1
-            self._remove_factors(lm, list(lm.obs), remove)
-            if self._tracks.get(lm.id) == lm.key:
-                del self._tracks[lm.id]
-                self._rejected_ids.add(lm.id)
+            self._reject_moving(todo[j][0], remove)
+
+    def _drift_candidates(self, lms: list) -> list:
+        """(landmark, its checked, kept observations in the window) of the distinct,
+        not rejected landmarks of ``lms`` with at least three of them."""
+        seen, todo = set(), []
+        for lm in lms:
+            if lm.rejected or lm.key in seen:
+                continue
+            seen.add(lm.key)
+            obs = [e for e in lm.obs if e[4] and e[2] >= 0 and e[0] in self._pose_stamp]
+            if len(obs) >= 3:
+                todo.append((lm, obs))
+        return todo
+
+    def _reject_moving(self, lm: _Landmark, remove: list) -> None:
+        """A landmark the drift test found moving: rejected, its factors in the window
+        removed with the next update, its track (if in progress) ended."""
+        lm.rejected = True
+        self.stats.landmarks_rejected += 1
+        self.stats.landmarks_moving += 1
+        self._remove_factors(lm, list(lm.obs), remove)
+        if self._tracks.get(lm.id) == lm.key:
+            del self._tracks[lm.id]
+            self._rejected_ids.add(lm.id)
 
     def _apparent_speed(self, world_T_imu, p, frames, r, front, starts) -> np.ndarray:
         """(n,) speed (m/s) of n landmarks taken as points moving at constant velocity:
@@ -665,7 +725,7 @@ class SmootherFilter(_History):
         p(t_i) = p + δp + v (t_i − t̄), over observations from poses ``world_T_imu``
         (N, 4, 4) of points ``p`` (N, 3) with whitened residuals ``r`` (N, 3), grouped
         by landmark (``starts``: first row of each)."""
-        cam_T_world = self.model.cam_T_imu @ se3_inverse(world_T_imu)
+        cam_T_world = self._model.cam_T_imu @ se3_inverse(world_T_imu)
         R = cam_T_world[:, :3, :3]
         q = np.einsum("kij,kj->ki", R, p) + cam_T_world[:, :3, 3]
         q[:, 2] = np.where(front, q[:, 2], 1.0)
@@ -729,7 +789,7 @@ class SmootherFilter(_History):
         """((n, 3) whitened (uL, uR, v) errors, prediction − measurement, of observations
         ``pix`` (n, 4) of landmarks ``p`` (n, 3) from poses (n, 4, 4); (n,) in front of
         the camera)."""
-        cam_T_world = self.model.cam_T_imu @ se3_inverse(world_T_imu)
+        cam_T_world = self._model.cam_T_imu @ se3_inverse(world_T_imu)
         q = np.einsum("kij,kj->ki", cam_T_world[:, :3, :3], p) + cam_T_world[:, :3, 3]
         cam = self.calibration.camera
         front = q[:, 2] > 1e-6
@@ -747,7 +807,7 @@ class SmootherFilter(_History):
             self._freeze_pose(k)
         gone = [lm for lm in self._landmarks.values() if lm.stamp < cutoff]
         self._freeze_landmarks(gone)
-        self.timings["marginals_s"] += time.perf_counter() - tic
+        self.diagnostics.timings["marginals_s"] += time.perf_counter() - tic
 
     def _freeze_pose(self, k: int) -> None:
         """Pose k leaves the window: its current estimate is final (its covariance is
@@ -773,7 +833,7 @@ class SmootherFilter(_History):
             return np.linalg.inv(info)
         frames = np.array([e[0] for lm in lms for e in lm.obs], dtype=np.int64)
         uniq, inv = np.unique(frames, return_inverse=True)
-        cam_T_world = self.model.cam_T_imu @ se3_inverse(np.array([self._pose_estimate(int(k)) for k in uniq]))
+        cam_T_world = self._model.cam_T_imu @ se3_inverse(np.array([self._pose_estimate(int(k)) for k in uniq]))
         R = cam_T_world[inv, :3, :3]
         q = np.einsum("kij,kj->ki", R, p[owner]) + cam_T_world[inv, :3, 3]
         ok = q[:, 2] > 1e-6
@@ -805,14 +865,14 @@ class SmootherFilter(_History):
                                   cols["last"][m], st)
 
     def _require_healthy(self) -> None:
-        if self.failed is not None:
-            raise EstimationError(f"the smoother stopped earlier ({self.failed}); start a new one")
+        if self.diagnostics.failed is not None:
+            raise EstimationError(f"the smoother stopped earlier ({self.diagnostics.failed}); start a new one")
 
     def finish(self) -> LandmarkMap:
         """Freeze every pose and landmark still in the window (their current estimates
         and marginals) and return the whole map."""
         tic = time.perf_counter()
-        healthy = self.failed is None
+        healthy = self.diagnostics.failed is None
         t_last, unchecked = self._unchecked
         for a in unchecked:  # the last frame's observations: no later update to check them by
             if a[3][2] >= 0:
@@ -826,7 +886,7 @@ class SmootherFilter(_History):
                 del self._pose_stamp[k]
         if healthy:
             self._freeze_landmarks(list(self._landmarks.values()))
-        self.timings["marginals_s"] += time.perf_counter() - tic
+        self.diagnostics.timings["marginals_s"] += time.perf_counter() - tic
         return self._builder.build()
 
     # --- refinement -------------------------------------------------------------------
@@ -899,8 +959,9 @@ def run_smoother(sequence, options: FilterOptions | None = None, progress=None, 
     options = options or FilterOptions()
     filt = SmootherFilter(sequence.calibration, options)
     result = drive(filt, sequence, progress, on_frame)
-    timing = {"smoother_seconds": float(result.stats.filter_seconds), "smoother_update_seconds": filt.timings["update_s"],
-              "smoother_marginals_seconds": filt.timings["marginals_s"]}
+    timings = filt.diagnostics.timings
+    timing = {"smoother_seconds": float(result.stats.filter_seconds), "smoother_update_seconds": timings["update_s"],
+              "smoother_marginals_seconds": timings["marginals_s"]}
     if options.refine and not result.partial:
         text = f"refining the whole drive ({result.stats.frames_processed} poses, batch Levenberg-Marquardt)"
         logger.info(text)

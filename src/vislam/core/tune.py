@@ -81,7 +81,7 @@ def student_t_logpdf(nis: np.ndarray, logdet_S: np.ndarray, nu: float = DEFAULT_
 
 
 class InnovationLikelihood:
-    """The :attr:`SlamFilter.innovation_hook` that sums the robust predictive
+    """The innovation observer (``filter.diagnostics.innovation_hook``) that sums the robust predictive
     log-density of every observation of an in-state landmark, before gating."""
 
     def __init__(self, nu: float = DEFAULT_NU, gate_nis: float = math.inf):
@@ -171,7 +171,7 @@ def evaluate_candidate(sequence: Sequence, candidate: Candidate, base: FilterOpt
     seq = apply_corrections(sequence, options)
     filt = SlamFilter(seq.calibration, options)
     hook = InnovationLikelihood(nu, options.gate_threshold)
-    filt.innovation_hook = hook
+    filt.diagnostics.innovation_hook = hook
     score = TuneScore(candidate)
     stop = seq.n_frames if frames is None else min(int(frames), seq.n_frames)
     tic = time.perf_counter()
@@ -186,7 +186,7 @@ def evaluate_candidate(sequence: Sequence, candidate: Candidate, base: FilterOpt
     score.seconds = time.perf_counter() - tic
     score.frames = stop
     score.n_predicted = hook.n_predicted
-    score.n_penalized = hook.n_behind + filt.observations_of_rejected
+    score.n_penalized = hook.n_behind + filt.diagnostics.observations_of_rejected
     if hook.n_predicted:
         score.logdet_mean = hook.logdet_sum / hook.n_predicted
         score.in_gate_share = hook.n_in_gate / hook.n_predicted

@@ -710,33 +710,11 @@ def evaluate(
     """
     camera = None
     if gt_world_T_cam is not None:
-        if cam_T_imu is None or not is_rigid_transform(cam_T_imu):
-            raise ValueError("camera-frame evaluation needs the 4x4 rigid cam_T_imu used")
-        cam_T_imu = np.array(cam_T_imu, dtype=np.float64)
-        # world_T_cam = world_T_imu @ imu_T_cam, expressed in the first camera's world frame (as KITTI ground
-        # truth is, when the estimate starts at the identity) by a left factor: the aligned metrics do not
-        # depend on that world frame, the unaligned APE does. The factor is cam_T_imu with its rotation
-        # projected onto SO(3) (the shared files' is orthonormal to 1e-7 only), so that it is exactly rigid
-        # and the aligned metrics are those of world_T_imu @ imu_T_cam to rounding.
-        world_change = _project_rotations(cam_T_imu[None])[0]
-        est_cam = world_change @ _check_poses(est_world_T_imu, "estimate") @ se3_inverse(cam_T_imu)
-        camera = evaluate(est_cam, gt_world_T_cam, timestamps, info={"frame": "left camera"})
+        camera, cam_T_imu = _camera_evaluation(est_world_T_imu, gt_world_T_cam, cam_T_imu, timestamps)
     elif cam_T_imu is not None:
         cam_T_imu = np.array(cam_T_imu, dtype=np.float64)
-    est = _check_poses(est_world_T_imu, "estimate")
-    gt = _check_poses(gt_world_T_imu, "ground truth")
-    if est.shape[0] != gt.shape[0]:
-        raise ValueError(f"estimate has {est.shape[0]} poses, ground truth {gt.shape[0]}; associate them first")
+    est, gt, ts = _checked_pairs(est_world_T_imu, gt_world_T_imu, timestamps)
     n = est.shape[0]
-    if n < 2:
-        raise GroundTruthError(f"only {n} pose pair(s) to compare; at least 2 are needed")
-    ts = None
-    if timestamps is not None:
-        ts = np.asarray(timestamps, dtype=np.float64).ravel()
-        if ts.shape[0] != n:
-            raise ValueError(f"{ts.shape[0]} timestamps for {n} poses")
-    est = _project_rotations(est)
-    gt = _project_rotations(gt)
     notes: list[str] = []
 
     ref = PosePath3D(poses_se3=list(gt.copy()))
@@ -745,39 +723,8 @@ def evaluate(
     # APE, not aligned.
     ape_unaligned = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
     ape_unaligned.process_data((ref, est_path))
-
-    # APE with SE(3) Umeyama alignment (as evo_ape -a).
-    aligned = copy.deepcopy(est_path)
-    try:
-        r_a, t_a, _ = aligned.align(ref, correct_scale=False)
-        alignment = np.eye(4)
-        alignment[:3, :3] = r_a
-        alignment[:3, 3] = t_a
-        ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
-        ape.process_data((ref, aligned))
-        ape_stats = ErrorStats.from_metric(ape)
-        aligned_err = np.asarray(ape.error, dtype=np.float64)
-        est_aligned = np.array(aligned.poses_se3)
-    except EvoException as exc:
-        notes.append(f"SE(3) alignment impossible ({exc}); aligned APE not computed")
-        logger.warning("%s", notes[-1])
-        alignment = np.eye(4)
-        ape_stats = ErrorStats()
-        aligned_err = np.full(n, np.nan)
-        est_aligned = est.copy()
-
-    # RPE over one frame and over 100 m of ground-truth path.
-    rel = evo_metrics.PoseRelation
-    rpe_trans = ErrorStats.from_metric(_rpe(ref, est_path, rel.translation_part, 1, evo_metrics.Unit.frames))
-    rpe_rot = ErrorStats.from_metric(_rpe(ref, est_path, rel.rotation_angle_deg, 1, evo_metrics.Unit.frames))
-    try:
-        rpe_trans_100 = ErrorStats.from_metric(
-            _rpe(ref, est_path, rel.translation_part, RPE_DISTANCE_M, evo_metrics.Unit.meters))
-        rpe_rot_100 = ErrorStats.from_metric(
-            _rpe(ref, est_path, rel.rotation_angle_deg, RPE_DISTANCE_M, evo_metrics.Unit.meters))
-    except EvoException:
-        notes.append(f"ground truth shorter than {RPE_DISTANCE_M:g} m: no {RPE_DISTANCE_M:g} m RPE")
-        rpe_trans_100 = rpe_rot_100 = ErrorStats()
+    alignment, ape_stats, aligned_err, est_aligned = _aligned_ape(ref, est_path, est, notes)
+    rpe_trans, rpe_rot, rpe_trans_100, rpe_rot_100 = _rpe_stats(ref, est_path, notes)
 
     kitti = kitti_odometry_errors(est, gt)
     if not kitti.has_segments:
@@ -811,6 +758,77 @@ def evaluate(
         ape_stats.rmse, kitti.t_pct, kitti.r_deg_per_100m, n,
     )
     return result
+
+
+def _camera_evaluation(est_world_T_imu, gt_world_T_cam, cam_T_imu, timestamps):
+    """(the camera-frame :class:`EvaluationResult`, cam_T_imu as floats) of
+    :func:`evaluate` with the ground truth's own left-camera poses."""
+    if cam_T_imu is None or not is_rigid_transform(cam_T_imu):
+        raise ValueError("camera-frame evaluation needs the 4x4 rigid cam_T_imu used")
+    cam_T_imu = np.array(cam_T_imu, dtype=np.float64)
+    # world_T_cam = world_T_imu @ imu_T_cam, expressed in the first camera's world frame (as KITTI ground
+    # truth is, when the estimate starts at the identity) by a left factor: the aligned metrics do not
+    # depend on that world frame, the unaligned APE does. The factor is cam_T_imu with its rotation
+    # projected onto SO(3) (the shared files' is orthonormal to 1e-7 only), so that it is exactly rigid
+    # and the aligned metrics are those of world_T_imu @ imu_T_cam to rounding.
+    world_change = _project_rotations(cam_T_imu[None])[0]
+    est_cam = world_change @ _check_poses(est_world_T_imu, "estimate") @ se3_inverse(cam_T_imu)
+    return evaluate(est_cam, gt_world_T_cam, timestamps, info={"frame": "left camera"}), cam_T_imu
+
+
+def _checked_pairs(est_world_T_imu, gt_world_T_imu, timestamps):
+    """(estimate, ground truth with rotations projected onto SO(3), timestamps or None)
+    of :func:`evaluate`, checked: the same number of poses, at least 2."""
+    est = _check_poses(est_world_T_imu, "estimate")
+    gt = _check_poses(gt_world_T_imu, "ground truth")
+    if est.shape[0] != gt.shape[0]:
+        raise ValueError(f"estimate has {est.shape[0]} poses, ground truth {gt.shape[0]}; associate them first")
+    n = est.shape[0]
+    if n < 2:
+        raise GroundTruthError(f"only {n} pose pair(s) to compare; at least 2 are needed")
+    ts = None
+    if timestamps is not None:
+        ts = np.asarray(timestamps, dtype=np.float64).ravel()
+        if ts.shape[0] != n:
+            raise ValueError(f"{ts.shape[0]} timestamps for {n} poses")
+    return _project_rotations(est), _project_rotations(gt), ts
+
+
+def _aligned_ape(ref, est_path, est: np.ndarray, notes: list):
+    """APE with SE(3) Umeyama alignment (as evo_ape -a): (alignment 4x4, its ErrorStats,
+    the aligned position error per pose, the aligned estimate); NaN with a note when the
+    path cannot be aligned."""
+    aligned = copy.deepcopy(est_path)
+    try:
+        r_a, t_a, _ = aligned.align(ref, correct_scale=False)
+        alignment = np.eye(4)
+        alignment[:3, :3] = r_a
+        alignment[:3, 3] = t_a
+        ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+        ape.process_data((ref, aligned))
+        return alignment, ErrorStats.from_metric(ape), np.asarray(ape.error, dtype=np.float64), \
+            np.array(aligned.poses_se3)
+    except EvoException as exc:
+        notes.append(f"SE(3) alignment impossible ({exc}); aligned APE not computed")
+        logger.warning("%s", notes[-1])
+        return np.eye(4), ErrorStats(), np.full(est.shape[0], np.nan), est.copy()
+
+
+def _rpe_stats(ref, est_path, notes: list):
+    """RPE over one frame and over 100 m of ground-truth path: (translation, rotation,
+    translation 100 m, rotation 100 m); the 100 m ones empty with a note on a shorter path."""
+    rel = evo_metrics.PoseRelation
+    rpe_trans = ErrorStats.from_metric(_rpe(ref, est_path, rel.translation_part, 1, evo_metrics.Unit.frames))
+    rpe_rot = ErrorStats.from_metric(_rpe(ref, est_path, rel.rotation_angle_deg, 1, evo_metrics.Unit.frames))
+    try:
+        rpe_trans_100 = ErrorStats.from_metric(
+            _rpe(ref, est_path, rel.translation_part, RPE_DISTANCE_M, evo_metrics.Unit.meters))
+        rpe_rot_100 = ErrorStats.from_metric(
+            _rpe(ref, est_path, rel.rotation_angle_deg, RPE_DISTANCE_M, evo_metrics.Unit.meters))
+    except EvoException:
+        notes.append(f"ground truth shorter than {RPE_DISTANCE_M:g} m: no {RPE_DISTANCE_M:g} m RPE")
+        rpe_trans_100 = rpe_rot_100 = ErrorStats()
+    return rpe_trans, rpe_rot, rpe_trans_100, rpe_rot_100
 
 
 def evaluate_associated(est: TrajectoryFile, gt: TrajectoryFile, dataset_timestamps=None,

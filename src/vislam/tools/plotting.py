@@ -164,42 +164,8 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
     ax = fig.add_subplot(grid[0])
     _side_view(fig.add_subplot(grid[1]), [(c.world_T_imu, c.color, c.linestyle, c.linewidth, 1.0) for c in curves])
 
-    handles: list = []
-    p = np.zeros((0, 2))
-    if landmarks is not None and len(landmarks):
-        p = np.asarray(landmarks.p_lm_in_world, dtype=np.float64)[:, :2]
-        rejected = np.asarray(landmarks.status) != 0
-        ok = ~rejected
-        n_ok, n_rej = int(ok.sum()), int(rejected.sum())
-        # small markers with alpha: thousands of points stay readable where they overlap
-        size = 10.0 if n_ok <= 500 else 5.0 if n_ok <= 2000 else 2.5
-        ax.scatter(p[ok, 0], p[ok, 1], s=size, c="tab:green", alpha=0.5, linewidths=0, rasterized=True, zorder=1)
-        handles.append(Line2D([], [], ls="none", marker="o", ms=4, color="tab:green", alpha=0.8,
-                              label=f"landmarks ({n_ok})"))
-        if n_rej:  # faint, under the kept ones: they must not hide the map
-            ax.scatter(p[rejected, 0], p[rejected, 1], s=10 if n_rej <= 200 else 5, marker="x", c="tab:red",
-                       alpha=0.25, linewidths=0.6, rasterized=True, zorder=0.5)
-            handles.append(Line2D([], [], ls="none", marker="x", ms=5, color="tab:red", alpha=0.5,
-                                  label=f"rejected landmarks ({n_rej})"))
-    curve_handles: list = []
-    traj_xy = []
-    for c in curves:
-        xy = np.asarray(c.world_T_imu)[:, :2, 3]
-        if xy.shape[0] == 0:
-            continue
-        traj_xy.append(xy)
-        (line,) = ax.plot(xy[:, 0], xy[:, 1], color=c.color, ls=c.linestyle, lw=c.linewidth, zorder=c.zorder,
-                          label=c.label)
-        curve_handles.append(line)
-    # start and end of the first curve that asks for it (all curves start at the origin)
-    marked = [c for c in curves if c.mark_ends and len(c.world_T_imu)]
-    if marked:
-        xy = np.asarray(marked[0].world_T_imu)[:, :2, 3]
-        ax.plot(*xy[0], marker="o", ms=9, mfc="white", mec="black", mew=1.8, ls="none", zorder=5)
-        ax.plot(*xy[-1], marker="s", ms=8, mfc="black", mec="black", ls="none", zorder=5)
-        curve_handles.append(Line2D([], [], ls="none", marker="o", ms=8, mfc="white", mec="black", mew=1.8,
-                                    label="start"))
-        curve_handles.append(Line2D([], [], ls="none", marker="s", ms=7, mfc="black", mec="black", label="end"))
+    p, handles = _map_landmarks(ax, landmarks)
+    curve_handles, traj_xy = _map_curves(ax, curves)
     handles = curve_handles + handles
 
     _label_map_axes(fig, ax, title, subtitle)
@@ -226,6 +192,58 @@ def plot_trajectory_map(path, curves: Seq[TrajectoryCurve], landmarks=None, titl
     with atomic_path(Path(path), suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=DPI)
     return {"xlim": tuple(map(float, xlim)), "ylim": tuple(map(float, ylim)), "landmarks_outside_view": n_outside}
+
+
+def _map_landmarks(ax, landmarks) -> tuple[np.ndarray, list]:
+    """The map's landmarks (green dots; rejected ones faint red crosses under them):
+    (xy of every landmark, legend handles)."""
+    from matplotlib.lines import Line2D
+
+    handles: list = []
+    p = np.zeros((0, 2))
+    if landmarks is not None and len(landmarks):
+        p = np.asarray(landmarks.p_lm_in_world, dtype=np.float64)[:, :2]
+        rejected = np.asarray(landmarks.status) != 0
+        ok = ~rejected
+        n_ok, n_rej = int(ok.sum()), int(rejected.sum())
+        # small markers with alpha: thousands of points stay readable where they overlap
+        size = 10.0 if n_ok <= 500 else 5.0 if n_ok <= 2000 else 2.5
+        ax.scatter(p[ok, 0], p[ok, 1], s=size, c="tab:green", alpha=0.5, linewidths=0, rasterized=True, zorder=1)
+        handles.append(Line2D([], [], ls="none", marker="o", ms=4, color="tab:green", alpha=0.8,
+                              label=f"landmarks ({n_ok})"))
+        if n_rej:  # faint, under the kept ones: they must not hide the map
+            ax.scatter(p[rejected, 0], p[rejected, 1], s=10 if n_rej <= 200 else 5, marker="x", c="tab:red",
+                       alpha=0.25, linewidths=0.6, rasterized=True, zorder=0.5)
+            handles.append(Line2D([], [], ls="none", marker="x", ms=5, color="tab:red", alpha=0.5,
+                                  label=f"rejected landmarks ({n_rej})"))
+    return p, handles
+
+
+def _map_curves(ax, curves) -> tuple[list, list]:
+    """The trajectories, with start and end of the first curve that asks for it (all
+    curves start at the origin): (legend handles, xy of each curve drawn)."""
+    from matplotlib.lines import Line2D
+
+    curve_handles: list = []
+    traj_xy = []
+    for c in curves:
+        xy = np.asarray(c.world_T_imu)[:, :2, 3]
+        if xy.shape[0] == 0:
+            continue
+        traj_xy.append(xy)
+        (line,) = ax.plot(xy[:, 0], xy[:, 1], color=c.color, ls=c.linestyle, lw=c.linewidth, zorder=c.zorder,
+                          label=c.label)
+        curve_handles.append(line)
+    # start and end of the first curve that asks for it (all curves start at the origin)
+    marked = [c for c in curves if c.mark_ends and len(c.world_T_imu)]
+    if marked:
+        xy = np.asarray(marked[0].world_T_imu)[:, :2, 3]
+        ax.plot(*xy[0], marker="o", ms=9, mfc="white", mec="black", mew=1.8, ls="none", zorder=5)
+        ax.plot(*xy[-1], marker="s", ms=8, mfc="black", mec="black", ls="none", zorder=5)
+        curve_handles.append(Line2D([], [], ls="none", marker="o", ms=8, mfc="white", mec="black", mew=1.8,
+                                    label="start"))
+        curve_handles.append(Line2D([], [], ls="none", marker="s", ms=7, mfc="black", mec="black", label="end"))
+    return curve_handles, traj_xy
 
 
 @dataclass(frozen=True)
@@ -270,7 +288,6 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
 
     fig = Figure(figsize=COMPARISON_FIGSIZE_IN, dpi=DPI)
     FigureCanvasAgg(fig)
@@ -282,7 +299,21 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
     layer_xy = [np.asarray(layer.world_T_imu, dtype=np.float64).reshape(-1, 4, 4)[:, :2, 3] for layer in layers]
     gt_xy = None if ground_truth is None else np.asarray(ground_truth, dtype=np.float64).reshape(-1, 4, 4)[:, :2, 3]
 
-    # --- the view
+    limits, fits = _comparison_view(layer_xy, gt_xy)
+    p, lm_handles = _comparison_landmarks(ax, layers)  # under the trajectories
+    handles, leaving = _comparison_trajectories(ax, layers, layer_xy, fits, gt_xy, ground_truth_label)
+    handles += lm_handles
+    _label_map_axes(fig, ax, title, subtitle)
+    xlim, ylim, n_outside = _legend_below_and_fit(fig, ax, handles, p, limits)
+    with atomic_path(Path(path), suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI)
+    return {"xlim": tuple(map(float, xlim)), "ylim": tuple(map(float, ylim)), "landmarks_outside_view": n_outside,
+            "layers_leaving_view": leaving}
+
+
+def _comparison_view(layer_xy: list, gt_xy: np.ndarray | None) -> tuple[tuple, list[bool]]:
+    """The view of :func:`plot_comparison_map`: (limits (x0, x1, y0, y1), whether each
+    layer's trajectory stays within half a span of the base extent)."""
     if gt_xy is not None and gt_xy.shape[0]:
         base = [gt_xy]
     else:
@@ -295,9 +326,14 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
     fits = [xy.shape[0] > 0 and _inside(xy, window) for xy in layer_xy]
     limits = view_limits(np.concatenate(base + [xy for xy, ok in zip(layer_xy, fits) if ok]) if base or any(fits)
                          else np.zeros((0, 2)))
+    return limits, fits
 
-    # --- landmarks (under the trajectories)
-    handles: list = []
+
+def _comparison_landmarks(ax, layers) -> tuple[np.ndarray, list]:
+    """Each layer's landmarks in the map (small dots of its colour; rejected ones not
+    drawn): (all xy drawn, legend handles)."""
+    from matplotlib.lines import Line2D
+
     lm_handles: list = []
     all_lm = []
     n_lm_total = sum(len(layer.landmarks) for layer in layers if layer.landmarks is not None)
@@ -314,8 +350,15 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
         text = f"{layer.short or layer.label}: {int(ok.sum())} landmarks" + (
             f" ({n_rej} rejected, not shown)" if n_rej else "")
         lm_handles.append(Line2D([], [], ls="none", marker="o", ms=4, color=layer.color, alpha=0.7, label=text))
+    return (np.concatenate(all_lm) if all_lm else np.zeros((0, 2))), lm_handles
 
-    # --- trajectories
+
+def _comparison_trajectories(ax, layers, layer_xy: list, fits: list, gt_xy, ground_truth_label: str):
+    """The ground truth and each layer's trajectory, its end a square of its colour, the
+    start marked once: (legend handles, labels of the layers that leave the view)."""
+    from matplotlib.lines import Line2D
+
+    handles: list = []
     if gt_xy is not None and gt_xy.shape[0]:
         (line,) = ax.plot(gt_xy[:, 0], gt_xy[:, 1], color="0.2", lw=3.0, alpha=0.45, zorder=2,
                           label=ground_truth_label)
@@ -337,13 +380,15 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
         handles.append(Line2D([], [], ls="none", marker="o", ms=8, mfc="white", mec="black", mew=1.8, label="start"))
         handles.append(Line2D([], [], ls="none", marker="s", ms=7, mfc="0.7", mec="black", mew=0.8,
                               label="end (colour of its trajectory)"))
-    handles += lm_handles
+    return handles, leaving
 
-    _label_map_axes(fig, ax, title, subtitle)
-    # The legend goes below the axes (several estimates and landmark sets would hide part
-    # of the drive); it is laid out before the view is fitted, with the count of landmarks
-    # outside the view updated afterwards (the fitted view only grows).
-    p = np.concatenate(all_lm) if all_lm else np.zeros((0, 2))
+
+def _legend_below_and_fit(fig, ax, handles: list, p: np.ndarray, limits) -> tuple:
+    """The legend goes below the axes (several estimates and landmark sets would hide
+    part of the drive); it is laid out before the view is fitted, with the count of
+    landmarks outside the view updated afterwards (the fitted view only grows).
+    Returns (xlim, ylim, landmarks outside the view)."""
+    from matplotlib.lines import Line2D
 
     def outside_text(xlim, ylim) -> str | None:
         n = int(_outside(p, xlim, ylim).sum()) if p.size else 0
@@ -359,10 +404,7 @@ def plot_comparison_map(path, layers: Seq[MapLayer], title: str, subtitle: str |
     n_outside = int(_outside(p, xlim, ylim).sum()) if p.size else 0
     if first and legend is not None:
         legend.get_texts()[-1].set_text(final or "no landmark outside the view")
-    with atomic_path(Path(path), suffix=".png") as tmp:
-        fig.savefig(tmp, format="png", dpi=DPI)
-    return {"xlim": tuple(map(float, xlim)), "ylim": tuple(map(float, ylim)), "landmarks_outside_view": n_outside,
-            "layers_leaving_view": leaving}
+    return xlim, ylim, n_outside
 
 
 def plot_grouped_bars(path, panels, series, ylabel: str, title: str) -> None:

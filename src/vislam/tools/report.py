@@ -1011,7 +1011,6 @@ def _moving_landmarks(root: Path, settings: ReportSettings, start_time: float, s
     The runs are taken from ``pending`` (see :func:`_submit_moving`), submitted to
     ``engine`` (default: this process) when absent."""
     from vislam.tools.cluster import SequentialEngine
-    from vislam.tools.plotting import MapLayer, plot_comparison_map
 
     doc = _Doc()
     rows: list[ReportRow] = []
@@ -1030,6 +1029,19 @@ def _moving_landmarks(root: Path, settings: ReportSettings, start_time: float, s
           f"filter); the robust preset ({', '.join(f'`{k}={v}`' for k, v in ROBUST_PRESET.items())}); and the "
           f"landmark motion model (`landmark_motion=True`, the report's proposed fix). A run that stops on a "
           f"numerical failure is shown as far as it got (partial).")
+    results, drives, table = _moving_results(scenes, base, pending, rows, step)
+    doc.table(["Scene", "Filter", "Frames", "Landmarks", "ATE (m)", "KITTI t (%)", "Filter time (s)", "Note",
+               "Folder"], table, "llrrrrrll")
+    doc.figures(_moving_figures(root / FIGURES_DIR, results, drives["moving"].world_T_imu, base, rows, step))
+    doc.figures([(f"{RUNS_DIR}/simulator-moving/{key}/{FIGURE}", f"Scene with moving landmarks: {label} (rejected "
+                  "landmarks as red crosses)") for key, label, _, _ in MOVING_VARIANTS])
+    step("moving-landmark figures: the variants")
+    return rows, doc.blocks
+
+
+def _moving_results(scenes: dict, base: FilterOptions, pending: dict, rows: list, step):
+    """The moving-landmark runs, taken from ``pending``: appends a row per run to
+    ``rows``; returns (results by (scene, key), drives by scene, table rows)."""
     results: dict[tuple[str, str], RunResult] = {}
     drives = {}
     table = []
@@ -1052,12 +1064,13 @@ def _moving_landmarks(root: Path, settings: ReportSettings, start_time: float, s
              f"observations): " + ", ".join(f"{r.method} ATE {_n(r.ate_m, '.2f')} m"
                                              + (" (partial)" if r.partial else "")
                                              for r in rows if r.dataset == f"simulator, {scene_label}"))
+    return results, drives, table
 
-    doc.table(["Scene", "Filter", "Frames", "Landmarks", "ATE (m)", "KITTI t (%)", "Filter time (s)", "Note",
-               "Folder"], table, "llrrrrrll")
 
-    figs_dir = root / FIGURES_DIR
-    truth = drives["moving"].world_T_imu
+def _moving_figures(figs_dir: Path, results: dict, truth: np.ndarray, base: FilterOptions, rows: list,
+                    step) -> list:
+    """The moving-landmark section's two comparison maps; returns their (path, caption)."""
+    from vislam.tools.plotting import MapLayer, plot_comparison_map
 
     def label_of(scene, key, label):
         r = results[scene, key]
@@ -1088,15 +1101,10 @@ def _moving_landmarks(root: Path, settings: ReportSettings, start_time: float, s
                         "10 % moving landmarks, 2 % outlier observations\nATE: " + ", ".join(
                             f"{key} {_ate(rows, 'moving', label)}" for key, label, _, _ in MOVING_VARIANTS),
                         ground_truth=truth)
-    figs = [(f"{FIGURES_DIR}/{path_a.name}", "SLAM without gating (the report's filter) on the static scene and on "
+    return [(f"{FIGURES_DIR}/{path_a.name}", "SLAM without gating (the report's filter) on the static scene and on "
              "the scene with moving landmarks and outliers (landmarks of each in its colour)"),
             (f"{FIGURES_DIR}/{path_b.name}", "Every SLAM variant on the scene with moving landmarks, and IMU-only "
              "localization")]
-    doc.figures(figs)
-    doc.figures([(f"{RUNS_DIR}/simulator-moving/{key}/{FIGURE}", f"Scene with moving landmarks: {label} (rejected "
-                  "landmarks as red crosses)") for key, label, _, _ in MOVING_VARIANTS])
-    step("moving-landmark figures: the variants")
-    return rows, doc.blocks
 
 
 def _ate(rows: list[ReportRow], scene: str, method: str) -> str:

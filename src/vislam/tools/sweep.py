@@ -239,51 +239,66 @@ def _named_sets(raw, key: str, source: str, default: dict, parse) -> dict[str, d
 def parse_spec(raw: Any, source: str = "spec", base_dir=None) -> SweepSpec:
     """Validate a SPEC mapping (see the module docstring); ``source`` names it in errors,
     relative paths are resolved against ``base_dir`` (default: the current directory)."""
-    from vislam.tools.config import OPTIONAL_FIELDS, load_options_file
-
     base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
     if not isinstance(raw, Mapping):
         raise ConfigError(f"{source}: expected a mapping with keys {', '.join(_SPEC_KEYS)}, got {type(raw).__name__}")
     unknown = [k for k in raw if k not in _SPEC_KEYS]
     if unknown:
         raise ConfigError(f"{source}: {unknown_names_message('key', unknown[:1], _SPEC_KEYS)}")
+    datasets = _parse_datasets(raw.get("datasets"), source, base_dir)
+    modes = _parse_modes(raw.get("modes", ["slam"]), source)
+    options = _named_sets(raw.get("options"), "options", source, {"default": {}},
+                          lambda value, where: _parse_option_set(value, where, base_dir))
+    noise = _named_sets(raw.get("noise"), "noise", source, {"none": {}}, _parse_noise_setting)
+    seeds = _parse_seeds(raw.get("seeds", [0]), source)
+    return SweepSpec(source, datasets, modes, options, noise, seeds)
 
-    # datasets
-    items = raw.get("datasets")
+
+def _parse_datasets(items, source: str, base_dir: Path) -> list[DatasetEntry]:
+    """The spec's ``datasets``: a non-empty list of paths or mappings with 'path', distinct names."""
     if not isinstance(items, list) or not items:
         raise ConfigError(f"{source}: datasets: expected a non-empty list of datasets (each a mapping with a "
                           f"'path'), got {items!r}")
     datasets: list[DatasetEntry] = []
     for i, item in enumerate(items):
         where = f"{source}: datasets[{i}]"
-        if isinstance(item, str):
-            item = {"path": item}
-        if not isinstance(item, Mapping):
-            raise ConfigError(f"{where}: expected a mapping with 'path' (and optionally {', '.join(_DATASET_KEYS[1:])})"
-                              f", got {type(item).__name__}")
-        bad = [k for k in item if k not in _DATASET_KEYS]
-        if bad:
-            raise ConfigError(f"{where}: {unknown_names_message('key', bad[:1], _DATASET_KEYS)}")
-        if "path" not in item:
-            raise ConfigError(f"{where}: missing 'path' (the dataset file)")
-        path = _path(item["path"], f"{where}.path", base_dir)
-        name = _name(item["name"], f"{where}.name") if "name" in item else Path(path).stem
-        gt = _path(item["groundtruth"], f"{where}.groundtruth", base_dir) if item.get("groundtruth") is not None \
-            else None
-        fmt = item.get("gt_format", "kitti")
-        if fmt not in GT_FORMATS:
-            raise ConfigError(f"{where}.gt_format: expected one of {', '.join(GT_FORMATS)}, got {fmt!r}")
-        frame = item.get("gt_frame", "auto")
-        if frame not in GT_FRAME_CHOICES:
-            raise ConfigError(f"{where}.gt_frame: expected one of {', '.join(GT_FRAME_CHOICES)}, got {frame!r}")
-        if gt is None and ("gt_format" in item or "gt_frame" in item):
-            raise ConfigError(f"{where}: gt_format/gt_frame given without a groundtruth file")
-        if any(d.name == name for d in datasets):
-            raise ConfigError(f"{where}: dataset name {name!r} is used twice; give the datasets distinct 'name's")
-        datasets.append(DatasetEntry(name, path, gt, fmt, frame))
+        entry = _parse_dataset(item, where, base_dir)
+        if any(d.name == entry.name for d in datasets):
+            raise ConfigError(f"{where}: dataset name {entry.name!r} is used twice; give the datasets distinct "
+                              f"'name's")
+        datasets.append(entry)
+    return datasets
 
-    # modes
-    modes = raw.get("modes", ["slam"])
+
+def _parse_dataset(item, where: str, base_dir: Path) -> DatasetEntry:
+    """One entry of ``datasets``: a path, or a mapping of path, name, groundtruth, gt_format, gt_frame."""
+    if isinstance(item, str):
+        item = {"path": item}
+    if not isinstance(item, Mapping):
+        raise ConfigError(f"{where}: expected a mapping with 'path' (and optionally {', '.join(_DATASET_KEYS[1:])})"
+                          f", got {type(item).__name__}")
+    bad = [k for k in item if k not in _DATASET_KEYS]
+    if bad:
+        raise ConfigError(f"{where}: {unknown_names_message('key', bad[:1], _DATASET_KEYS)}")
+    if "path" not in item:
+        raise ConfigError(f"{where}: missing 'path' (the dataset file)")
+    path = _path(item["path"], f"{where}.path", base_dir)
+    name = _name(item["name"], f"{where}.name") if "name" in item else Path(path).stem
+    gt = _path(item["groundtruth"], f"{where}.groundtruth", base_dir) if item.get("groundtruth") is not None \
+        else None
+    fmt = item.get("gt_format", "kitti")
+    if fmt not in GT_FORMATS:
+        raise ConfigError(f"{where}.gt_format: expected one of {', '.join(GT_FORMATS)}, got {fmt!r}")
+    frame = item.get("gt_frame", "auto")
+    if frame not in GT_FRAME_CHOICES:
+        raise ConfigError(f"{where}.gt_frame: expected one of {', '.join(GT_FRAME_CHOICES)}, got {frame!r}")
+    if gt is None and ("gt_format" in item or "gt_frame" in item):
+        raise ConfigError(f"{where}: gt_format/gt_frame given without a groundtruth file")
+    return DatasetEntry(name, path, gt, fmt, frame)
+
+
+def _parse_modes(modes, source: str) -> list[str]:
+    """The spec's ``modes``: a mode or a non-empty list of distinct modes."""
     if isinstance(modes, str):
         modes = [modes]
     if not isinstance(modes, list) or not modes:
@@ -293,55 +308,58 @@ def parse_spec(raw: Any, source: str = "spec", base_dir=None) -> SweepSpec:
             raise ConfigError(f"{source}: modes: unknown mode {m!r}; expected {', '.join(MODES)}")
     if len(set(modes)) != len(modes):
         raise ConfigError(f"{source}: modes: a mode is listed twice: {modes!r}")
+    return list(modes)
 
-    # option sets
-    def parse_options(value, where: str) -> dict[str, Any]:
-        if isinstance(value, str):  # an options file
-            file = _path(value, where, base_dir)
-            try:
-                values = load_options_file(file)
-            except ConfigError as exc:
-                raise ConfigError(f"{where}: {exc}") from None
-        elif value is None:
-            values = {}
-        elif isinstance(value, Mapping):
-            values = flatten_options(value, where)  # groups of options -> flat names
-        else:
-            raise ConfigError(f"{where}: expected a mapping of FilterOptions fields or an options file, got "
-                              f"{type(value).__name__}")
-        for k in OPTIONAL_FIELDS:  # the off-words of options files
-            v = values.get(k)
-            if v is False or (isinstance(v, str) and v.strip().lower() in ("none", "null", "off")):
-                values[k] = None
-        options = FilterOptions.from_dict(values, source=where)
-        return {k: v for k, v in options.to_dict().items() if k in values}
 
-    options = _named_sets(raw.get("options"), "options", source, {"default": {}}, parse_options)
+def _parse_option_set(value, where: str, base_dir: Path) -> dict[str, Any]:
+    """One named option set: a mapping of FilterOptions fields or an options file; the
+    fields it gives, validated."""
+    from vislam.tools.config import OPTIONAL_FIELDS, load_options_file
 
-    # noise settings
-    def parse_noise(value, where: str) -> dict[str, Any]:
-        if value is None:
-            return {}
-        if not isinstance(value, Mapping):
-            raise ConfigError(f"{where}: expected a mapping of noise fields ({', '.join(_NOISE_FIELDS)}), got "
-                              f"{type(value).__name__}")
-        if "seed" in value:
-            raise ConfigError(f"{where}: 'seed' is not a noise setting here; list the seeds under 'seeds'")
-        bad = [k for k in value if k not in _NOISE_FIELDS]
-        if bad:
-            raise ConfigError(f"{where}: {unknown_names_message('noise field', bad[:1], _NOISE_FIELDS)}")
+    if isinstance(value, str):  # an options file
+        file = _path(value, where, base_dir)
         try:
-            spec = NoiseSpec(**value)
+            values = load_options_file(file)
         except ConfigError as exc:
             raise ConfigError(f"{where}: {exc}") from None
-        except TypeError as exc:  # pragma: no cover - guarded by the key check
-            raise ConfigError(f"{where}: {exc}") from None
-        return {k: v for k, v in spec.to_dict().items() if k in value}
+    elif value is None:
+        values = {}
+    elif isinstance(value, Mapping):
+        values = flatten_options(value, where)  # groups of options -> flat names
+    else:
+        raise ConfigError(f"{where}: expected a mapping of FilterOptions fields or an options file, got "
+                          f"{type(value).__name__}")
+    for k in OPTIONAL_FIELDS:  # the off-words of options files
+        v = values.get(k)
+        if v is False or (isinstance(v, str) and v.strip().lower() in ("none", "null", "off")):
+            values[k] = None
+    options = FilterOptions.from_dict(values, source=where)
+    return {k: v for k, v in options.to_dict().items() if k in values}
 
-    noise = _named_sets(raw.get("noise"), "noise", source, {"none": {}}, parse_noise)
 
-    # seeds
-    seeds = raw.get("seeds", [0])
+def _parse_noise_setting(value, where: str) -> dict[str, Any]:
+    """One named injected-noise setting: a mapping of NoiseSpec fields (no seed)."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{where}: expected a mapping of noise fields ({', '.join(_NOISE_FIELDS)}), got "
+                          f"{type(value).__name__}")
+    if "seed" in value:
+        raise ConfigError(f"{where}: 'seed' is not a noise setting here; list the seeds under 'seeds'")
+    bad = [k for k in value if k not in _NOISE_FIELDS]
+    if bad:
+        raise ConfigError(f"{where}: {unknown_names_message('noise field', bad[:1], _NOISE_FIELDS)}")
+    try:
+        spec = NoiseSpec(**value)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    except TypeError as exc:  # pragma: no cover - guarded by the key check
+        raise ConfigError(f"{where}: {exc}") from None
+    return {k: v for k, v in spec.to_dict().items() if k in value}
+
+
+def _parse_seeds(seeds, source: str) -> list[int]:
+    """The spec's ``seeds``: an integer or a non-empty list of distinct integers >= 0."""
     if isinstance(seeds, int) and not isinstance(seeds, bool):
         seeds = [seeds]
     if not isinstance(seeds, list) or not seeds or any(isinstance(s, bool) or not isinstance(s, int) or s < 0
@@ -349,7 +367,7 @@ def parse_spec(raw: Any, source: str = "spec", base_dir=None) -> SweepSpec:
         raise ConfigError(f"{source}: seeds: expected a non-empty list of integers >= 0, got {seeds!r}")
     if len(set(seeds)) != len(seeds):
         raise ConfigError(f"{source}: seeds: a seed is listed twice: {seeds!r}")
-    return SweepSpec(source, datasets, list(modes), options, noise, list(seeds))
+    return list(seeds)
 
 
 # ----------------------------------------------------------------------------- one cell
@@ -369,7 +387,6 @@ def run_cell(cell: Cell) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
     t0 = time.perf_counter()
-    d = cell.dataset
     row: dict[str, Any] = dict(zip(KEY_COLUMNS, cell.key))
     row.update(cell.settings())
     try:
