@@ -412,6 +412,15 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     for i in range(max(int(iterations), 1)):
         if i == 0 and first is not None:
             (r, Hp, Hl), in_front = first, None
+        elif i == 1 and factors:
+            # The iteration goes on only if tolerance <= step <= prev_step (the two tests
+            # below), so a first step x_1 − x_0 = K_0 r_0 already below the tolerance ends
+            # it whatever the re-linearization says: decide that before paying for it (the
+            # same decision and the same state; on the shared files most frames stop here).
+            prev_step = _step_size(state, slots, gain_times(factors, r_prev))
+            if prev_step < tolerance:
+                break
+            r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
         else:
             r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
         if i and not in_front.all():
