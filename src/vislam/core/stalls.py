@@ -71,7 +71,7 @@ import numpy as np
 from vislam.core.bookkeeping import sorted_positions
 from vislam.core.lie import se3_inverse
 from vislam.core.propagation import dead_reckoning
-from vislam.core.sequence import Sequence, StereoObservations
+from vislam.core.sequence import Frame, Sequence, StereoObservations
 
 __all__ = [
     "track_lags",
@@ -643,6 +643,9 @@ class StallRemapBuffer:
                 raise ValueError(f"stall remap: two observations of one landmark in frame {frame.index}")
         else:
             ids, pixels = np.zeros(0, dtype=np.int64), np.zeros((0, 4))
+        if type(frame) is Frame:  # dataclasses.replace, without its field-by-field introspection
+            return Frame(frame.index, frame.timestamp_s, frame.dt_s, frame.linear_velocity_mps,
+                         frame.angular_velocity_radps, ids, pixels)
         return replace(frame, landmark_ids=ids, pixels=pixels)
 
 

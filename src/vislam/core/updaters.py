@@ -22,6 +22,7 @@ gauge: its block of the nullspace is zero).
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -101,18 +102,36 @@ class StereoModel:
         if not in_front.all():
             q_safe = q.copy()
             q_safe[~in_front, 2] = 1.0
-        J = self.M @ dpi_dq(q_safe)  # M dπ/dq(q)   (k, 4, 4)
+        J = self.M @ _dpi_dq_in_front(q_safe)  # M dπ/dq(q)   (k, 4, 4)
         z_hat = (q_safe / q_safe[:, 2:3]) @ self.M.T  # M π(q)
         if world_T_anchor is None:
             H_lm = J[:, :, :3] @ cam_T_world[:3, :3]  # M dπ/dq cam_T_imu μ Pᵀ
         else:
             A = cam_T_world @ world_T_anchor  # cam_T_anchor of each landmark
-            H_lm = J @ A[:, :, [0, 1, 3]]  # M dπ/dq cam_T_imu μ world_T_anchor [e1 e2 e4]
+            H_lm = J @ A[:, :, _COLS_ALPHA_BETA_RHO]  # M dπ/dq cam_T_imu μ world_T_anchor [e1 e2 e4]
         H_pose = None
         if with_pose_jacobian:
             q_imu = m_h @ imu_T_world.T  # μ m
             H_pose = (J @ self.cam_T_imu) @ se3_odot(q_imu)  # M dπ/dq cam_T_imu (μ m)^⊙
         return z_hat, H_pose, H_lm, in_front
+
+
+_COLS_ALPHA_BETA_RHO = np.array([0, 1, 3])
+_XYW = np.array([0, 1, 3])  # the rows of dπ/dq with entries
+
+
+def _dpi_dq_in_front(q: np.ndarray) -> np.ndarray:
+    """:func:`~vislam.core.camera.dpi_dq` of (k, 4) float64 points all with q_z > 0 (the
+    caller made sure): the same arithmetic without the argument checks (the filter calls
+    it per frame); non-finite entries still raise GeometryError."""
+    out = np.zeros(q.shape[:-1] + (4, 4))
+    with np.errstate(over="ignore", invalid="ignore"):
+        inv_z = (1.0 / q[:, 2])[:, None]
+        out[:, _XYW, _XYW] = inv_z  # (0, 0), (1, 1), (3, 3)
+        out[:, _XYW, 2] = -q[:, _XYW] * inv_z * inv_z  # (0, 2), (1, 2), (3, 2): −q_i / q_z²
+    if not np.isfinite(out).all():
+        return dpi_dq(q)  # raises the GeometryError of a non-finite Jacobian
+    return out
 
 
 def innovation_nis(r: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -210,12 +229,15 @@ def conditional_residual_model(blocks, Hp: np.ndarray, Hl: np.ndarray, V: np.nda
     k, _, d = P_ps.shape
     # Σ_pp⁻¹ Σ_ps of every landmark as one solve with 6 x dk right-hand sides (LAPACK solves
     # column by column: the same numbers as k broadcast solves of one matrix, 2.5x faster)
-    X = np.linalg.solve(P_pp + 1e-12 * np.eye(POSE_DIM), np.swapaxes(P_ps, 0, 1).reshape(POSE_DIM, k * d))
+    X = np.linalg.solve(P_pp + _EPS_EYE6, np.swapaxes(P_ps, 0, 1).reshape(POSE_DIM, k * d))
     G = X.reshape(POSE_DIM, k, d).transpose(1, 2, 0)  # Σ_sp Σ_pp⁻¹ (k, d, 6)
     Ht = Hp + Hl @ G
     C = P_ss - G @ P_ps  # Σ_ss − Σ_sp Σ_pp⁻¹ Σ_ps
     St = Hl @ C @ np.swapaxes(Hl, 1, 2) + V
     return Ht, np.linalg.cholesky(0.5 * (St + np.swapaxes(St, 1, 2)))
+
+
+_EPS_EYE6 = 1e-12 * np.eye(POSE_DIM)
 
 
 def oc_project(Hp: np.ndarray, Hl: np.ndarray, N_pose: np.ndarray, N_lm: np.ndarray):
@@ -354,17 +376,27 @@ def gain_times(factors: dict, dr: np.ndarray) -> np.ndarray:
 
 def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
     """Size of a state step in standard deviations of the current covariance: the largest
-    of the pose's and of each observed landmark's Mahalanobis norm (marginal blocks)."""
-    d = state.lm_dim
+    of the pose's and of each observed landmark's Mahalanobis norm (marginal blocks).
+
+    One batched solve: the landmarks' 3x3 blocks are padded to 6x6 with the identity
+    beside the pose block (LU with partial pivoting never leaves a block of a block-diagonal
+    matrix, so each landmark's numbers are those of its own 3x3 solve)."""
     P = state.cov
-    sizes = [np.sqrt(max(float(dx[:POSE_DIM] @ np.linalg.solve(P[:POSE_DIM, :POSE_DIM], dx[:POSE_DIM])), 0.0))]
-    if len(slots):
+    k = len(slots)
+    A = np.zeros((k + 1, POSE_DIM, POSE_DIM))
+    e = np.zeros((k + 1, POSE_DIM))
+    A[0] = P[:POSE_DIM, :POSE_DIM]
+    e[0] = dx[:POSE_DIM]
+    if k:
         rows = state.landmark_rows(slots)[:, :3]  # (k, 3) position rows
-        P_ll = P[rows[:, :, None], rows[:, None, :]]
-        e = dx[rows]
-        q = np.einsum("ki,ki->k", e, np.linalg.solve(P_ll, e[:, :, None])[:, :, 0])
-        sizes.append(np.sqrt(max(float(np.max(q)), 0.0)))
-    return max(sizes)
+        A[1:, :3, :3] = P[rows[:, :, None], rows[:, None, :]]
+        A[1:, _I36, _I36] = 1.0
+        e[1:, :3] = dx[rows]
+    q = np.einsum("ki,ki->k", e, np.linalg.solve(A, e[:, :, None])[:, :, 0])
+    return math.sqrt(max(float(q.max()), 0.0))
+
+
+_I36 = np.arange(3, 6)
 
 
 def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
