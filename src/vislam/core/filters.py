@@ -36,6 +36,7 @@ returns a partial result.
 from __future__ import annotations
 
 import logging
+import math
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 
@@ -231,7 +232,7 @@ def single_thread_blas():
 
 def _check_dt(dt_s) -> float:
     dt = float(dt_s)
-    if not np.isfinite(dt) or dt < 0:
+    if not math.isfinite(dt) or dt < 0:
         raise ConfigError(f"predict: dt_s must be a finite time step >= 0 (s), got {dt_s!r}")
     return dt
 

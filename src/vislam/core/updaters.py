@@ -195,9 +195,12 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
     r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
     blocks = _gather_blocks(state, slots)
     S = innovation_covariances(Hp, Hl, blocks, V)
-    nis = np.full(len(slots), np.inf)
-    if in_front.any():
-        nis[in_front] = innovation_nis(r[in_front], S[in_front])
+    if in_front.all():
+        nis = innovation_nis(r, S)
+    else:
+        nis = np.full(len(slots), np.inf)
+        if in_front.any():
+            nis[in_front] = innovation_nis(r[in_front], S[in_front])
     return r, Hp, Hl, in_front, nis, blocks
 
 
@@ -358,8 +361,8 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
     B = _solve_lower(L, PHt.T)  # B = L⁻¹ H Σ
     y = _solve_lower(L, r.reshape(-1))  # y = L⁻¹ r
     dx = B.T @ y  # δ = K r = Σ Hᵀ S⁻¹ r
-    if factors is not None:
-        factors.update(L=L, B=B, compressed=r.shape[1] == 3)
+    if factors is not None:  # dx: K r, what gain_times(factors, r) computes (the same operations)
+        factors.update(L=L, B=B, compressed=r.shape[1] == 3, dx=dx)
     P -= B.T @ B  # Σ ← Σ − K S Kᵀ (a full GEMM beats SYRK + symmetrizing at these sizes)
     _apply_correction(state, dx)
     return dx[:POSE_DIM]
@@ -376,27 +379,17 @@ def gain_times(factors: dict, dr: np.ndarray) -> np.ndarray:
 
 def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
     """Size of a state step in standard deviations of the current covariance: the largest
-    of the pose's and of each observed landmark's Mahalanobis norm (marginal blocks).
-
-    One batched solve: the landmarks' 3x3 blocks are padded to 6x6 with the identity
-    beside the pose block (LU with partial pivoting never leaves a block of a block-diagonal
-    matrix, so each landmark's numbers are those of its own 3x3 solve)."""
+    of the pose's and of each observed landmark's Mahalanobis norm (marginal blocks)."""
     P = state.cov
-    k = len(slots)
-    A = np.zeros((k + 1, POSE_DIM, POSE_DIM))
-    e = np.zeros((k + 1, POSE_DIM))
-    A[0] = P[:POSE_DIM, :POSE_DIM]
-    e[0] = dx[:POSE_DIM]
-    if k:
+    pose = dx[:POSE_DIM]
+    size = float(pose @ np.linalg.solve(P[:POSE_DIM, :POSE_DIM], pose))
+    if len(slots):
         rows = state.landmark_rows(slots)[:, :3]  # (k, 3) position rows
-        A[1:, :3, :3] = P[rows[:, :, None], rows[:, None, :]]
-        A[1:, _I36, _I36] = 1.0
-        e[1:, :3] = dx[rows]
-    q = np.einsum("ki,ki->k", e, np.linalg.solve(A, e[:, :, None])[:, :, 0])
-    return math.sqrt(max(float(q.max()), 0.0))
-
-
-_I36 = np.arange(3, 6)
+        P_ll = P[rows[:, :, None], rows[:, None, :]]
+        e = dx[rows]
+        q = np.einsum("ki,ki->k", e, np.linalg.solve(P_ll, e[:, :, None])[:, :, 0])
+        size = max(size, float(np.max(q)))
+    return math.sqrt(max(size, 0.0))
 
 
 def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
@@ -449,7 +442,8 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
             # below), so a first step x_1 − x_0 = K_0 r_0 already below the tolerance ends
             # it whatever the re-linearization says: decide that before paying for it (the
             # same decision and the same state; on the shared files most frames stop here).
-            prev_step = _step_size(state, slots, gain_times(factors, r_prev))
+            first_dx = factors["dx"] if "dx" in factors else gain_times(factors, r_prev)
+            prev_step = _step_size(state, slots, first_dx)
             if prev_step < tolerance:
                 break
             r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
