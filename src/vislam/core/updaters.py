@@ -392,6 +392,30 @@ def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
     return math.sqrt(max(size, 0.0))
 
 
+class _FirstStepTest:
+    """Whether to test the first step before re-linearizing (slam_update_iterated). Both
+    orders take the same decisions; the test first saves a linearization when it settles
+    the frame and costs one step-size evaluation when it does not. It is kept while it
+    settles at least a fifth of the recent frames, and tried again every 32nd frame."""
+
+    def __init__(self):
+        self.rate = 1.0  # running share of the frames the test settled
+        self.skipped = 0
+
+    def worth_it(self) -> bool:
+        if self.rate >= 0.2 or self.skipped >= 31:
+            self.skipped = 0
+            return True
+        self.skipped += 1
+        return False
+
+    def record(self, settled: bool) -> None:
+        self.rate += 0.1 * (float(settled) - self.rate)
+
+
+_FIRST_STEP_TEST = _FirstStepTest()
+
+
 def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
                          N_pose: np.ndarray | None, iterations: int, update=None, tolerance: float = 0.0,
                          counts: list | None = None, first: tuple | None = None) -> np.ndarray:
@@ -417,7 +441,9 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     stop when that step is larger than the step before (the first: x₁ − x₀ = K₀ r₀, in the
     same metric): Gauss-Newton that does not contract is moving away, so the last
     iterate is kept (with the IMU-error state and two landmarks in view it drove b̂ to
-    14 σ; on the shared files with the defaults it never fires).
+    14 σ; on the shared files with the defaults it never fires). The iteration therefore
+    goes on only if tolerance ≤ step ≤ the step already taken, and a first step below the
+    tolerance ends it before any re-linearization (the same decision, cheaper).
     ``counts``: a list that receives the number of updates done. ``first``: (r, H_pose,
     H_lm) of these observations at the prior, when the caller has them already.
     Returns the total pose correction ε, μ = exp(ε) μ₀.
@@ -437,13 +463,15 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     for i in range(max(int(iterations), 1)):
         if i == 0 and first is not None:
             (r, Hp, Hl), in_front = first, None
-        elif i == 1 and factors:
+        elif i == 1 and factors and _FIRST_STEP_TEST.worth_it():
             # The iteration goes on only if tolerance <= step <= prev_step (the two tests
             # below), so a first step x_1 − x_0 = K_0 r_0 already below the tolerance ends
             # it whatever the re-linearization says: decide that before paying for it (the
-            # same decision and the same state; on the shared files most frames stop here).
+            # same decision and the same state; on the sparse files most frames stop here,
+            # on the dense ones almost none, where the test is skipped: _FirstStepTest).
             first_dx = factors["dx"] if "dx" in factors else gain_times(factors, r_prev)
             prev_step = _step_size(state, slots, first_dx)
+            _FIRST_STEP_TEST.record(prev_step < tolerance)
             if prev_step < tolerance:
                 break
             r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
