@@ -149,7 +149,7 @@ def test_command_table_lists_every_command_with_its_modules_own_help_line():
     from vislam.cli import COMMANDS, build_parser
 
     assert _command_helps(build_parser("*")) == {name: help_line for name, _, help_line in COMMANDS}
-    assert list(_command_helps(build_parser())) == [name for name, _, _ in COMMANDS]
+    assert list(_command_helps(build_parser(None))) == [name for name, _, _ in COMMANDS]
     for name, _, help_line in COMMANDS:  # one command's full parser beside the placeholders
         helps = _command_helps(build_parser(name))
         assert list(helps) == [n for n, _, _ in COMMANDS] and helps[name] == help_line

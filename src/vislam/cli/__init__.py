@@ -86,10 +86,11 @@ def _command_of(argv: list[str]) -> str | None:
     return next((a for a in argv if not a.startswith("-")), None)
 
 
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The parser of ``vislam``. Only ``command``'s module is imported and builds its
-    full parser; the other commands get a one-line placeholder (enough for ``vislam
-    --help`` and for "did you mean"). ``command="*"``: every command's full parser."""
+def build_parser(command: str | None = "*") -> argparse.ArgumentParser:
+    """The parser of ``vislam``. ``"*"`` (default): every command's full parser. A
+    command name: only that command's module is imported and builds its full parser; the
+    other commands get a one-line placeholder (enough for ``vislam --help`` and for "did
+    you mean"). None: placeholders only (what :func:`main` uses without a command)."""
     parser = _Parser(
         prog="vislam",
         description="Stereo visual-inertial SLAM on SE(3) with an extended Kalman filter.",
