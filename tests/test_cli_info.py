@@ -134,3 +134,41 @@ def test_info_missing_key(tmp_path):
     proc = run_cli(bad)
     _assert_one_line_error(proc, bad)
     assert "'rotational_velocity'" in proc.stderr and "'angular_velocity'" in proc.stderr
+
+
+def _command_helps(parser) -> dict[str, str]:
+    import argparse
+
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {a.dest: a.help for a in sub._choices_actions}
+
+
+def test_command_table_lists_every_command_with_its_modules_own_help_line():
+    """``vislam --help`` is built from vislam.cli.COMMANDS without importing the commands:
+    its one-line helps and its order must be those the command modules register."""
+    from vislam.cli import COMMANDS, build_parser
+
+    assert _command_helps(build_parser("*")) == {name: help_line for name, _, help_line in COMMANDS}
+    assert list(_command_helps(build_parser(None))) == [name for name, _, _ in COMMANDS]
+    for name, _, help_line in COMMANDS:  # one command's full parser beside the placeholders
+        helps = _command_helps(build_parser(name))
+        assert list(helps) == [n for n, _, _ in COMMANDS] and helps[name] == help_line
+
+
+def test_top_level_help_imports_no_command_module_nor_numpy():
+    code = ("import sys, contextlib, io\nfrom vislam.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()) as out:\n"
+            "    try:\n        main(['--help'])\n    except SystemExit:\n        pass\n"
+            "assert 'run' in out.getvalue() and 'simulate' in out.getvalue()\n"
+            "print(sorted(m for m in sys.modules if m == 'numpy' or m.startswith('vislam.cli.')))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
+
+
+def test_a_command_parser_imports_that_command_only():
+    code = ("import sys\nfrom vislam.cli import build_parser\nbuild_parser('eval')\n"
+            "print(sorted(m for m in sys.modules if m.startswith('vislam.cli.')))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "['vislam.cli.eval']"

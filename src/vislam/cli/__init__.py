@@ -19,22 +19,34 @@ from vislam.core.suggest import did_you_mean
 from vislam.errors import VislamError
 from vislam.text import ERRORS as TEXT_ERRORS
 
-#: Subcommand modules, in the order ``vislam --help`` lists them. Each module defines
-#: ``register(subparsers)``, which adds its parser and sets ``func`` (args -> exit code).
-COMMAND_MODULES = [
-    "vislam.cli.demo",
-    "vislam.cli.track",
-    "vislam.cli.run",
-    "vislam.cli.compare",
-    "vislam.cli.eval",
-    "vislam.cli.report",
-    "vislam.cli.sweep",
-    "vislam.cli.tune",
-    "vislam.cli.consistency",
-    "vislam.cli.info",
-    "vislam.cli.check",
-    "vislam.cli.simulate",
-]
+#: The commands, in the order ``vislam --help`` lists them: (name, module, one-line help).
+#: Each module defines ``register(subparsers)``, which adds its parser (with this help
+#: line) and sets ``func`` (args -> exit code). The parser imports only the module of
+#: the command being run, so ``vislam --help`` and a command's start-up do not pay for
+#: the others (numpy, scipy, matplotlib, Dask ...); tests/test_cli_info.py checks that
+#: these lines are the modules' own.
+COMMANDS = (
+    ("demo", "vislam.cli.demo", "run SLAM on a built-in simulated drive and grade it against the truth"),
+    ("track", "vislam.cli.track",
+     "track stereo features in an image folder (KITTI raw, EuRoC, plain) into a dataset .npz"),
+    ("run", "vislam.cli.run", "run IMU localization, landmark mapping, SLAM or the sliding-window smoother on a dataset"),
+    ("compare", "vislam.cli.compare", "localization + mapping (separately), SLAM, the smoother and its refinement on "
+     "the same data, one comparison figure"),
+    ("eval", "vislam.cli.eval", "evaluate an estimated trajectory against ground truth"),
+    ("report", "vislam.cli.report",
+     "regenerate the report's whole results section (figures, tables, metrics) in one command"),
+    ("sweep", "vislam.cli.sweep", "run a grid of datasets x modes x option sets x noise x seeds on a Dask cluster"),
+    ("tune", "vislam.cli.tune",
+     "choose the filter's noise without ground truth (innovation likelihood, parallel search on Dask)"),
+    ("consistency", "vislam.cli.consistency", "Monte Carlo consistency of the filter on simulated drives: pose and "
+     "landmark NEES with chi-square bands"),
+    ("info", "vislam.cli.info", "validate a dataset file and summarize it"),
+    ("check", "vislam.cli.check", "learn the noise, biases and conventions of a recording (no ground truth)"),
+    ("simulate", "vislam.cli.simulate", "simulate a KITTI-like drive with ground truth"),
+)
+
+#: Subcommand modules, in the order ``vislam --help`` lists them.
+COMMAND_MODULES = [module for _, module, _ in COMMANDS]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -68,7 +80,17 @@ class _Parser(argparse.ArgumentParser):
         super().error(message)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _command_of(argv: list[str]) -> str | None:
+    """The command named on the command line: its first argument that is not an option
+    (the top-level options take no values)."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+def build_parser(command: str | None = "*") -> argparse.ArgumentParser:
+    """The parser of ``vislam``. ``"*"`` (default): every command's full parser. A
+    command name: only that command's module is imported and builds its full parser; the
+    other commands get a one-line placeholder (enough for ``vislam --help`` and for "did
+    you mean"). None: placeholders only (what :func:`main` uses without a command)."""
     parser = _Parser(
         prog="vislam",
         description="Stereo visual-inertial SLAM on SE(3) with an extended Kalman filter.",
@@ -76,11 +98,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"vislam {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
+    for name, module_name, help_line in COMMANDS:
+        if command not in (name, "*"):
+            subparsers.add_parser(name, help=help_line)
+            continue
         try:
-            module = importlib.import_module(name)
+            module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:  # a command not built yet
-            if exc.name == name:
+            if exc.name == module_name:
                 continue
             raise
         module.register(subparsers)
@@ -100,7 +125,8 @@ def _configure_logging(verbosity: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_command_of(argv))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)

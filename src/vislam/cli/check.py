@@ -36,7 +36,7 @@ def register(subparsers) -> None:
                         "--out the tracks are cached as DIR/tracks.npz)")
     parser.add_argument("--out", metavar="DIR", help="write check.json and suggested.yaml into DIR")
     parser.add_argument("--json", action="store_true", help="print the whole result as JSON instead of the verdict")
-    from vislam.cli.track import add_source_arguments
+    from vislam.cli.common import add_source_arguments
 
     add_source_arguments(parser)
     parser.set_defaults(func=run)
@@ -45,7 +45,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     if args.out and Path(args.out).exists() and not Path(args.out).is_dir():  # before seconds of work
         raise OutputError(f"{args.out}: exists and is not a directory (an output directory is expected)")
-    from vislam.cli.run import load_data
+    from vislam.cli.common import load_data
 
     args.quiet = getattr(args, "quiet", False) or args.json
     sequence, _ = load_data(args, args.out)

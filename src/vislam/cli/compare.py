@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from vislam.cli.run import (
+from vislam.cli.common import (
     _print,
     add_filter_arguments,
     auto_options,
@@ -71,7 +71,7 @@ def register(subparsers) -> None:
     add_filter_arguments(parser)
     add_noise_injection_arguments(parser)
     add_ground_truth_arguments(parser)
-    from vislam.cli.track import add_source_arguments
+    from vislam.cli.common import add_source_arguments
 
     add_source_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
@@ -127,7 +127,7 @@ def format_comparison(comparison, content: dict, out_dir) -> str:
 
 def run(args) -> int:
     from vislam.tools.comparison import dataset_record, parse_methods, run_comparison, runs_of, write_comparison
-    from vislam.cli.run import load_data
+    from vislam.cli.common import load_data
     from vislam.tools.outputs import OutputStage, process_start_time
 
     start_time = process_start_time() or _COMMAND_START

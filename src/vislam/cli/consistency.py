@@ -12,7 +12,7 @@ __all__ = ["register", "run"]
 
 
 def register(subparsers) -> None:
-    from vislam.cli.sweep import add_engine_arguments
+    from vislam.cli.common import add_engine_arguments
 
     parser = subparsers.add_parser(
         "consistency",
@@ -47,7 +47,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from vislam.cli.sweep import configure_dask_logging, terminate_as_interrupt
+    from vislam.cli.common import configure_dask_logging, terminate_as_interrupt
     from vislam.core.options import FilterOptions
     from vislam.errors import ConfigError
     from vislam.tools.cluster import open_engine

@@ -15,7 +15,7 @@ import argparse
 import sys
 import time
 
-from vislam.cli.run import finish, interrupted_message, make_progress
+from vislam.cli.common import finish, interrupted_message, make_progress
 
 __all__ = ["register", "run", "DEMO_NOISE"]
 

@@ -67,7 +67,7 @@ def register(subparsers) -> None:
     parser.add_argument("--no-smoother", action="store_true",
                         help="leave the sliding-window smoother and its refinement out of the per-dataset tables "
                         "(they cost about 4x SLAM's time per frame, ~20 s more per dense drive)")
-    from vislam.cli.sweep import add_engine_arguments
+    from vislam.cli.common import add_engine_arguments
 
     add_engine_arguments(parser, sequential_help="run every experiment in this process, one after the other, as "
                          "before (no Dask)")
@@ -76,7 +76,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from vislam.cli.sweep import configure_dask_logging, terminate_as_interrupt
+    from vislam.cli.common import configure_dask_logging, terminate_as_interrupt
     from vislam.tools.cluster import open_engine
     from vislam.tools.outputs import process_start_time
     from vislam.tools.report import ReportSettings, generate_report

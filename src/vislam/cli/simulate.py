@@ -155,7 +155,7 @@ def run(args) -> int:
                           f"{args.max_memory:g} GB; simulate at most {most} frames, or raise --max-memory")
     drive = simulate_drive(options)
     if getattr(args, "images", False):
-        from vislam.cli.run import make_progress
+        from vislam.cli.common import make_progress
         from vislam.tools.simulate_images import write_rendered_drive
 
         progress, close = make_progress(drive.n_frames, "render", False)

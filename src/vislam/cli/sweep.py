@@ -8,60 +8,11 @@ terminal) and prints a summary.
 
 from __future__ import annotations
 
-import contextlib
-import signal
 import sys
 
+from vislam.cli.common import add_engine_arguments, configure_dask_logging, terminate_as_interrupt  # noqa: F401
+
 __all__ = ["register", "run", "add_engine_arguments", "terminate_as_interrupt", "configure_dask_logging"]
-
-
-def configure_dask_logging(verbosity: int) -> None:
-    """Dask's own log output: none by default (Dask logs every worker start and stop at
-    INFO, and a worker that loses its scheduler while a local cluster shuts down at ERROR;
-    what matters reaches the command through its tasks' results), errors and warnings
-    with -v, everything with -vv. Set through the environment so that the local
-    cluster's worker processes inherit it."""
-    import logging
-    import os
-
-    level = "critical" if verbosity <= 0 else "warning" if verbosity == 1 else "info"
-    os.environ["DASK_LOGGING__DISTRIBUTED"] = level
-    if "distributed" in sys.modules:  # already imported: its logger is configured
-        logging.getLogger("distributed").setLevel(level.upper())
-
-
-def add_engine_arguments(parser, sequential_help: str | None = None) -> None:
-    """``--scheduler``, ``--workers`` (and ``--sequential``) — shared by sweep and report."""
-    group = parser.add_argument_group(
-        "engine", "Runs go to a Dask cluster: by default a local one started (and stopped) by this command; "
-        "--scheduler uses a running one (dask scheduler/dask worker by hand, dask-jobqueue, Kubernetes). Workers "
-        "must import the same vislam and see the data files under the same paths.")
-    group.add_argument("--scheduler", metavar="tcp://HOST:PORT",
-                       help="address of a running Dask scheduler (default: start a local cluster)")
-    group.add_argument("--workers", type=int, metavar="N",
-                       help="worker processes of the local cluster, one thread each (default: 2; ignored with "
-                       "--scheduler)")
-    group.add_argument("--sequential", action="store_true",
-                       help=sequential_help or "run everything in this process, one run after the other (no Dask)")
-
-
-@contextlib.contextmanager
-def terminate_as_interrupt():
-    """Treat SIGTERM like Ctrl-C for the block, so a killed command still stops its
-    cluster and leaves its outputs consistent."""
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def register(subparsers) -> None:

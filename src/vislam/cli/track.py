@@ -12,12 +12,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from vislam.cli.common import TRACKER_FLAGS, add_source_arguments, tracker_options_from_args  # noqa: F401
 from vislam.errors import ConfigError
 
 __all__ = ["register", "run", "tracker_options_from_args", "format_stats"]
-
-#: argparse dest -> TrackerOptions field
-_FLAGS = {"features": "target_features", "min_track_length": "min_track_length"}
 
 
 def register(subparsers) -> None:
@@ -38,39 +36,6 @@ def register(subparsers) -> None:
                         help="leave out tracks seen in fewer frames (default 3)")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     parser.set_defaults(func=run)
-
-
-def add_source_arguments(parser) -> None:
-    """Flags of an image-folder SOURCE (shared with run/check/compare/report)."""
-    group = parser.add_argument_group("image folders (SOURCE a folder instead of an .npz)")
-    group.add_argument("--pair", choices=("grey", "colour"), default="grey",
-                       help="KITTI raw: the grey (image_00/01, default) or colour (image_02/03) pair")
-    group.add_argument("--velocities", metavar="CSV",
-                       help="EuRoC: IMU velocities t,vx,vy,vz,wx,wy,wz (s, m/s, rad/s, IMU frame), interpolated at "
-                       "the image times (EuRoC's IMU gives accelerations, which the filters cannot use)")
-    group.add_argument("--tracker-config", metavar="FILE", dest="tracker_config",
-                       help="tracker options (YAML/TOML) when SOURCE is a folder")
-
-
-def tracker_options_from_args(config_path, overrides: dict | None = None):
-    """TrackerOptions of defaults < options file < flags (None values ignored)."""
-    from vislam.core.tracking import TrackerOptions
-    from vislam.tools.config import load_options_file
-
-    values = {}
-    if config_path is not None:
-        values = load_options_file(config_path)
-        TrackerOptions.from_dict(values, source=str(config_path))
-    given = {k: v for k, v in (overrides or {}).items() if v is not None}
-    if not given:
-        return TrackerOptions.from_dict(values, source=str(config_path) if config_path else "options")
-    try:
-        return TrackerOptions.from_dict({**values, **given}, source="command line")
-    except ConfigError as exc:
-        message = str(exc)
-        for dest, field in _FLAGS.items():
-            message = message.replace(field, "--" + dest.replace("_", "-"))
-        raise ConfigError(message) from None
 
 
 def format_stats(stats: dict, paths) -> str:
@@ -94,7 +59,7 @@ def format_stats(stats: dict, paths) -> str:
 
 
 def run(args) -> int:
-    from vislam.cli.run import make_progress
+    from vislam.cli.common import make_progress
     from vislam.tools.frontend_io import open_stereo_source, track_source, write_tracks
 
     out = Path(args.out)
@@ -103,7 +68,7 @@ def run(args) -> int:
     if out.is_dir():
         raise ConfigError(f"--out {out}: is a directory; expected a file name ending in .npz")
     config = args.config or getattr(args, "tracker_config", None)
-    options = tracker_options_from_args(config, {f: getattr(args, d, None) for d, f in _FLAGS.items()})
+    options = tracker_options_from_args(config, {f: getattr(args, d, None) for d, f in TRACKER_FLAGS.items()})
     source = open_stereo_source(args.source, pair=args.pair, velocities=args.velocities)
     progress, close = make_progress(source.n_frames, "track", args.quiet)
     try:

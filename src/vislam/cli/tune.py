@@ -16,7 +16,7 @@ __all__ = ["register", "run"]
 
 
 def register(subparsers) -> None:
-    from vislam.cli.sweep import add_engine_arguments
+    from vislam.cli.common import add_engine_arguments
 
     parser = subparsers.add_parser(
         "tune",
@@ -69,7 +69,7 @@ def _base_options(config) -> dict:
 
 
 def run(args) -> int:
-    from vislam.cli.sweep import configure_dask_logging, terminate_as_interrupt
+    from vislam.cli.common import configure_dask_logging, terminate_as_interrupt
     from vislam.errors import ConfigError, DatasetError, OutputError
     from vislam.core.tune import SearchSpace
     from vislam.tools.cluster import open_engine

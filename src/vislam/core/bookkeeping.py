@@ -215,18 +215,36 @@ class FrameRepeats:
         self._ids = np.zeros(0, dtype=np.int64)
         self._z = np.zeros((0, 4))
         self._flow = float("nan")
+        self._flow_inputs = None
         self._motion = None
 
     def set_motion(self, dt_s: float, linear_velocity, angular_velocity) -> None:
         """The interval (s) and IMU sample that end at the next frame."""
-        if self.camera is not None:
-            self._motion = (float(dt_s), float(np.linalg.norm(linear_velocity)),
-                            float(np.linalg.norm(angular_velocity)), self.camera)
+        if self.camera is not None:  # the norms are taken only when a frame has repeats (_motion_now)
+            self._motion = (float(dt_s), np.array(linear_velocity, dtype=np.float64),
+                            np.array(angular_velocity, dtype=np.float64))
+
+    def _motion_now(self):
+        """(τ, |v|, |ω|, camera) of the interval set by :meth:`set_motion`, or None."""
+        if self._motion is None:
+            return None
+        dt, v, w = self._motion
+        return dt, float(np.linalg.norm(v)), float(np.linalg.norm(w)), self.camera
+
+    def _previous_flow(self) -> float:
+        """Median pixel motion (uL, vL) of the tracks continuing at the previous call (NaN: none)."""
+        if self._flow_inputs is not None:
+            cur, prev = self._flow_inputs
+            flow = np.hypot(cur[:, 0] - prev[:, 0], cur[:, 1] - prev[:, 1])
+            self._flow = float(np.median(flow)) if flow.size else float("nan")
+            self._flow_inputs = None
+        return self._flow
 
     def __call__(self, t: int, ids: np.ndarray, z: np.ndarray) -> np.ndarray:
         from vislam.core.sequence import repeat_decision
 
         rep = np.zeros(ids.size, dtype=bool)
+        flow = None
         if self._t == t - 1 and ids.size and self._ids.size:
             pos, hit = sorted_positions(ids, self._ids)
             c = np.flatnonzero(hit)
@@ -234,11 +252,11 @@ class FrameRepeats:
             cur = z[c]
             equal = (prev == cur).all(axis=1)
             if equal.any():
-                rep[c], _ = repeat_decision(cur, equal, int(ids.size - c.size), self._flow, self._motion)
-            flow = np.hypot(cur[:, 0] - prev[:, 0], cur[:, 1] - prev[:, 1])
-            self._flow = float(np.median(flow)) if flow.size else float("nan")
-        else:
-            self._flow = float("nan")
+                rep[c], _ = repeat_decision(cur, equal, int(ids.size - c.size), self._previous_flow(), self._motion_now())
+            flow = (cur, prev)
+        # the median motion of this step's tracks is needed only if the next frame has
+        # bit-identical pixels: kept as its inputs, computed then (_previous_flow)
+        self._flow, self._flow_inputs = float("nan"), flow
         self._t, self._ids, self._z = t, ids, z
         self._motion = None
         return rep

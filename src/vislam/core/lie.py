@@ -58,7 +58,16 @@ SMALL_ANGLE = 1e-2
 
 
 def _as_float(x) -> np.ndarray:
+    if type(x) is np.ndarray and x.dtype == np.float64:  # the filters' own arrays: no conversion
+        return x
     return np.asarray(x, dtype=np.float64)
+
+
+# identities for the one-element paths (np.eye costs a few microseconds a call there)
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
+_EYE4 = np.eye(4)
+_EYE4.setflags(write=False)
 
 
 # ----------------------------------------------------------------------------- SO(3)
@@ -165,7 +174,7 @@ def _so3_left_jacobian_single(phi: np.ndarray) -> np.ndarray:
         B = 0.5 * sinc_half * sinc_half
         C = (theta - math.sin(theta)) / (theta * theta * theta)
     K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + B * K + C * (K @ K)
+    return _EYE3 + B * K + C * (K @ K)
 
 
 def so3_left_jacobian_inverse(phi) -> np.ndarray:
@@ -257,9 +266,9 @@ def _se3_exp_single(xi: np.ndarray) -> np.ndarray:
         C = (theta - math.sin(theta)) / (theta * t2)
     K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     KK = K @ K
-    out = np.eye(4)
+    out = _EYE4.copy()
     out[:3, :3] += A * K + B * KK
-    out[:3, 3] = (np.eye(3) + B * K + C * KK) @ xi[:3]
+    out[:3, 3] = (_EYE3 + B * K + C * KK) @ xi[:3]
     return out
 
 
@@ -302,7 +311,7 @@ def _se3_log_single(T: np.ndarray) -> np.ndarray | None:
         half = 0.5 * theta
         D = (1.0 - half / math.tan(half)) / (theta * theta)
     K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    Jinv = np.eye(3) - 0.5 * K + D * (K @ K)
+    Jinv = _EYE3 - 0.5 * K + D * (K @ K)
     out = np.empty(6)
     out[:3] = np.einsum("...ij,...j->...i", Jinv, T[:3, 3])
     out[3:] = (x, y, z)

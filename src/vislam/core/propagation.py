@@ -171,7 +171,8 @@ def pose_transition(tau: float, u: np.ndarray, oc_correction: np.ndarray | None 
         # adds −τ J_l(−τu) du; du has only its ∂v/∂φ block, so J_l reduces to SO(3)'s
         F = F.copy()
         F[:3] -= tau * (so3_left_jacobian(-tau * u[3:]) @ du[:3])
-    if oc_correction is not None:
+    if oc_correction is not None and (not isinstance(oc_correction, np.ndarray) or oc_correction.any()):
+        # (ε = 0, e.g. after a frame without an update: exp(0) = I exactly, F* = F)
         F = F @ se3_adjoint(se3_exp(oc_correction))  # F* = F Ad(exp(ε))
     return step, F
 

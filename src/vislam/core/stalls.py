@@ -71,7 +71,7 @@ import numpy as np
 from vislam.core.bookkeeping import sorted_positions
 from vislam.core.lie import se3_inverse
 from vislam.core.propagation import dead_reckoning
-from vislam.core.sequence import Sequence, StereoObservations
+from vislam.core.sequence import Frame, Sequence, StereoObservations
 
 __all__ = [
     "track_lags",
@@ -568,7 +568,6 @@ class StallRemapBuffer:
         # ends it), so they are exactly the last frame's observations — its ids (strictly
         # increasing), pixels and the lag of each track
         self._ids = np.zeros(0, dtype=np.int64)
-        self._px = np.zeros((0, 4))
         self._lag = np.zeros(0, dtype=np.int64)
         self._pending = deque()  # [frame, id parts, pixel parts], oldest first
         self._next = 0  # index of the next frame pushed
@@ -597,22 +596,27 @@ class StallRemapBuffer:
         if k > 0:
             self._repeats.set_motion(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
         rep = self._repeats(k, ids, z)
-        lag += rep
-        self._ids, self._px, self._lag = ids.copy(), z.copy(), lag  # (the caller may reuse its arrays)
-        self.repeats += int(rep.sum())
-        keep = ~rep
-        lag = lag[keep]
-        ok = lag <= self.max_delay_frames
-        self.dropped += int((~ok).sum())
+        n_rep = int(np.count_nonzero(rep))
+        if n_rep:
+            lag += rep
+        self._ids, self._lag = ids.copy(), lag  # (the caller may reuse its arrays)
+        self.repeats += n_rep
+        # the kept observations (not repeats) whose lag the buffer can still place
+        sel = np.flatnonzero(~rep) if n_rep else np.arange(ids.size)
+        kept_lag = lag[sel] if n_rep else lag
+        ok = kept_lag <= self.max_delay_frames
+        n_ok = int(np.count_nonzero(ok))
+        self.dropped += int(kept_lag.size) - n_ok
+        if n_ok < kept_lag.size:
+            sel, kept_lag = sel[ok], kept_lag[ok]
         self._pending.append([k, frame, [], []])
         base = k - (len(self._pending) - 1)  # number of the oldest pending frame
-        sel = np.flatnonzero(keep)[ok]
         if sel.size == 0:
             groups = ()
-        elif lag.any():
+        elif kept_lag.any():
             # group by target frame k − lag (a stable sort keeps the ids increasing in each group)
-            sel = sel[np.argsort(lag[ok], kind="stable")]
-            target = k - self._lag[sel]
+            sel = sel[np.argsort(kept_lag, kind="stable")]
+            target = k - lag[sel]
             cuts = (np.flatnonzero(np.diff(target)) + 1).tolist()
             groups = zip([0, *cuts], [*cuts, sel.size], target[[0, *cuts]].tolist())
         else:  # no lagged track: every observation belongs to frame k
@@ -643,6 +647,9 @@ class StallRemapBuffer:
                 raise ValueError(f"stall remap: two observations of one landmark in frame {frame.index}")
         else:
             ids, pixels = np.zeros(0, dtype=np.int64), np.zeros((0, 4))
+        if type(frame) is Frame:  # dataclasses.replace, without its field-by-field introspection
+            return Frame(frame.index, frame.timestamp_s, frame.dt_s, frame.linear_velocity_mps,
+                         frame.angular_velocity_radps, ids, pixels)
         return replace(frame, landmark_ids=ids, pixels=pixels)
 
 

@@ -22,6 +22,7 @@ gauge: its block of the nullspace is zero).
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -101,18 +102,36 @@ class StereoModel:
         if not in_front.all():
             q_safe = q.copy()
             q_safe[~in_front, 2] = 1.0
-        J = self.M @ dpi_dq(q_safe)  # M dπ/dq(q)   (k, 4, 4)
+        J = self.M @ _dpi_dq_in_front(q_safe)  # M dπ/dq(q)   (k, 4, 4)
         z_hat = (q_safe / q_safe[:, 2:3]) @ self.M.T  # M π(q)
         if world_T_anchor is None:
             H_lm = J[:, :, :3] @ cam_T_world[:3, :3]  # M dπ/dq cam_T_imu μ Pᵀ
         else:
             A = cam_T_world @ world_T_anchor  # cam_T_anchor of each landmark
-            H_lm = J @ A[:, :, [0, 1, 3]]  # M dπ/dq cam_T_imu μ world_T_anchor [e1 e2 e4]
+            H_lm = J @ A[:, :, _COLS_ALPHA_BETA_RHO]  # M dπ/dq cam_T_imu μ world_T_anchor [e1 e2 e4]
         H_pose = None
         if with_pose_jacobian:
             q_imu = m_h @ imu_T_world.T  # μ m
             H_pose = (J @ self.cam_T_imu) @ se3_odot(q_imu)  # M dπ/dq cam_T_imu (μ m)^⊙
         return z_hat, H_pose, H_lm, in_front
+
+
+_COLS_ALPHA_BETA_RHO = np.array([0, 1, 3])
+_XYW = np.array([0, 1, 3])  # the rows of dπ/dq with entries
+
+
+def _dpi_dq_in_front(q: np.ndarray) -> np.ndarray:
+    """:func:`~vislam.core.camera.dpi_dq` of (k, 4) float64 points all with q_z > 0 (the
+    caller made sure): the same arithmetic without the argument checks (the filter calls
+    it per frame); non-finite entries still raise GeometryError."""
+    out = np.zeros(q.shape[:-1] + (4, 4))
+    with np.errstate(over="ignore", invalid="ignore"):
+        inv_z = (1.0 / q[:, 2])[:, None]
+        out[:, _XYW, _XYW] = inv_z  # (0, 0), (1, 1), (3, 3)
+        out[:, _XYW, 2] = -q[:, _XYW] * inv_z * inv_z  # (0, 2), (1, 2), (3, 2): −q_i / q_z²
+    if not np.isfinite(out).all():
+        return dpi_dq(q)  # raises the GeometryError of a non-finite Jacobian
+    return out
 
 
 def innovation_nis(r: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -176,9 +195,12 @@ def slam_predict_nis(state: SlamState, model: StereoModel, slots: np.ndarray, z:
     r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
     blocks = _gather_blocks(state, slots)
     S = innovation_covariances(Hp, Hl, blocks, V)
-    nis = np.full(len(slots), np.inf)
-    if in_front.any():
-        nis[in_front] = innovation_nis(r[in_front], S[in_front])
+    if in_front.all():
+        nis = innovation_nis(r, S)
+    else:
+        nis = np.full(len(slots), np.inf)
+        if in_front.any():
+            nis[in_front] = innovation_nis(r[in_front], S[in_front])
     return r, Hp, Hl, in_front, nis, blocks
 
 
@@ -210,12 +232,15 @@ def conditional_residual_model(blocks, Hp: np.ndarray, Hl: np.ndarray, V: np.nda
     k, _, d = P_ps.shape
     # Σ_pp⁻¹ Σ_ps of every landmark as one solve with 6 x dk right-hand sides (LAPACK solves
     # column by column: the same numbers as k broadcast solves of one matrix, 2.5x faster)
-    X = np.linalg.solve(P_pp + 1e-12 * np.eye(POSE_DIM), np.swapaxes(P_ps, 0, 1).reshape(POSE_DIM, k * d))
+    X = np.linalg.solve(P_pp + _EPS_EYE6, np.swapaxes(P_ps, 0, 1).reshape(POSE_DIM, k * d))
     G = X.reshape(POSE_DIM, k, d).transpose(1, 2, 0)  # Σ_sp Σ_pp⁻¹ (k, d, 6)
     Ht = Hp + Hl @ G
     C = P_ss - G @ P_ps  # Σ_ss − Σ_sp Σ_pp⁻¹ Σ_ps
     St = Hl @ C @ np.swapaxes(Hl, 1, 2) + V
     return Ht, np.linalg.cholesky(0.5 * (St + np.swapaxes(St, 1, 2)))
+
+
+_EPS_EYE6 = 1e-12 * np.eye(POSE_DIM)
 
 
 def oc_project(Hp: np.ndarray, Hl: np.ndarray, N_pose: np.ndarray, N_lm: np.ndarray):
@@ -336,8 +361,8 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
     B = _solve_lower(L, PHt.T)  # B = L⁻¹ H Σ
     y = _solve_lower(L, r.reshape(-1))  # y = L⁻¹ r
     dx = B.T @ y  # δ = K r = Σ Hᵀ S⁻¹ r
-    if factors is not None:
-        factors.update(L=L, B=B, compressed=r.shape[1] == 3)
+    if factors is not None:  # dx: K r, what gain_times(factors, r) computes (the same operations)
+        factors.update(L=L, B=B, compressed=r.shape[1] == 3, dx=dx)
     P -= B.T @ B  # Σ ← Σ − K S Kᵀ (a full GEMM beats SYRK + symmetrizing at these sizes)
     _apply_correction(state, dx)
     return dx[:POSE_DIM]
@@ -355,16 +380,40 @@ def gain_times(factors: dict, dr: np.ndarray) -> np.ndarray:
 def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
     """Size of a state step in standard deviations of the current covariance: the largest
     of the pose's and of each observed landmark's Mahalanobis norm (marginal blocks)."""
-    d = state.lm_dim
     P = state.cov
-    sizes = [np.sqrt(max(float(dx[:POSE_DIM] @ np.linalg.solve(P[:POSE_DIM, :POSE_DIM], dx[:POSE_DIM])), 0.0))]
+    pose = dx[:POSE_DIM]
+    size = float(pose @ np.linalg.solve(P[:POSE_DIM, :POSE_DIM], pose))
     if len(slots):
         rows = state.landmark_rows(slots)[:, :3]  # (k, 3) position rows
         P_ll = P[rows[:, :, None], rows[:, None, :]]
         e = dx[rows]
         q = np.einsum("ki,ki->k", e, np.linalg.solve(P_ll, e[:, :, None])[:, :, 0])
-        sizes.append(np.sqrt(max(float(np.max(q)), 0.0)))
-    return max(sizes)
+        size = max(size, float(np.max(q)))
+    return math.sqrt(max(size, 0.0))
+
+
+class _FirstStepTest:
+    """Whether to test the first step before re-linearizing (slam_update_iterated). Both
+    orders take the same decisions; the test first saves a linearization when it settles
+    the frame and costs one step-size evaluation when it does not. It is kept while it
+    settles at least a fifth of the recent frames, and tried again every 32nd frame."""
+
+    def __init__(self):
+        self.rate = 1.0  # running share of the frames the test settled
+        self.skipped = 0
+
+    def worth_it(self) -> bool:
+        if self.rate >= 0.2 or self.skipped >= 31:
+            self.skipped = 0
+            return True
+        self.skipped += 1
+        return False
+
+    def record(self, settled: bool) -> None:
+        self.rate += 0.1 * (float(settled) - self.rate)
+
+
+_FIRST_STEP_TEST = _FirstStepTest()
 
 
 def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
@@ -392,7 +441,9 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     stop when that step is larger than the step before (the first: x₁ − x₀ = K₀ r₀, in the
     same metric): Gauss-Newton that does not contract is moving away, so the last
     iterate is kept (with the IMU-error state and two landmarks in view it drove b̂ to
-    14 σ; on the shared files with the defaults it never fires).
+    14 σ; on the shared files with the defaults it never fires). The iteration therefore
+    goes on only if tolerance ≤ step ≤ the step already taken, and a first step below the
+    tolerance ends it before any re-linearization (the same decision, cheaper).
     ``counts``: a list that receives the number of updates done. ``first``: (r, H_pose,
     H_lm) of these observations at the prior, when the caller has them already.
     Returns the total pose correction ε, μ = exp(ε) μ₀.
@@ -412,6 +463,18 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     for i in range(max(int(iterations), 1)):
         if i == 0 and first is not None:
             (r, Hp, Hl), in_front = first, None
+        elif i == 1 and factors and _FIRST_STEP_TEST.worth_it():
+            # The iteration goes on only if tolerance <= step <= prev_step (the two tests
+            # below), so a first step x_1 − x_0 = K_0 r_0 already below the tolerance ends
+            # it whatever the re-linearization says: decide that before paying for it (the
+            # same decision and the same state; on the sparse files most frames stop here,
+            # on the dense ones almost none, where the test is skipped: _FirstStepTest).
+            first_dx = factors["dx"] if "dx" in factors else gain_times(factors, r_prev)
+            prev_step = _step_size(state, slots, first_dx)
+            _FIRST_STEP_TEST.record(prev_step < tolerance)
+            if prev_step < tolerance:
+                break
+            r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
         else:
             r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
         if i and not in_front.all():

@@ -48,10 +48,6 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-from evo import EvoException
-from evo.core import metrics as evo_metrics
-from evo.core import sync as evo_sync
-from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 
 from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.metrics import KittiOdometryErrors, kitti_odometry_errors, trajectory_distances
@@ -100,6 +96,23 @@ __all__ = [
     "format_table",
 ]
 
+
+
+class _LazyModule:
+    """A module imported on first attribute access (evo costs ~0.5 s of imports, which
+    a run without ground truth does not need)."""
+
+    def __init__(self, name: str):
+        self._name = name
+
+    def __getattr__(self, attr: str):
+        import importlib
+
+        return getattr(importlib.import_module(self._name), attr)
+
+
+evo_metrics = _LazyModule("evo.core.metrics")
+evo_sync = _LazyModule("evo.core.sync")
 logger = logging.getLogger(__name__)
 
 #: Ground-truth path length (m) between the poses of the distance-based RPE.
@@ -443,6 +456,9 @@ def associate(
         GroundTruthError: nothing matches, or fewer than 2 pairs.
         ConfigError: a KITTI estimate against TUM ground truth without dataset timestamps.
     """
+    from evo import EvoException
+    from evo.core.trajectory import PoseTrajectory3D
+
     if not (max_diff_s > 0 and math.isfinite(max_diff_s)):
         raise ConfigError(f"max. time difference must be a positive number of seconds, got {max_diff_s!r}")
     est_ts = _frame_timestamps(est, dataset_timestamps, "estimate")
@@ -708,6 +724,9 @@ def evaluate(
     evaluation (:attr:`EvaluationResult.camera`): ``est_world_T_imu @ imu_T_cam``
     against ``gt_world_T_cam``.
     """
+    from evo import EvoException
+    from evo.core.trajectory import PosePath3D
+
     camera = None
     if gt_world_T_cam is not None:
         camera, cam_T_imu = _camera_evaluation(est_world_T_imu, gt_world_T_cam, cam_T_imu, timestamps)
