@@ -670,6 +670,20 @@ def _swapped_rig(est: dict[str, Any], rig, C0: np.ndarray, se3d, evidence: str) 
         [list(map(float, row)) for row in _with_translation(C0, t_swapped)]
 
 
+@dataclass
+class _TranslationEvidence:
+    """What the tracks say of cam_T_imu's translation (see :func:`_translation_evidence`)."""
+
+    t_free: np.ndarray  # the free estimate (camera frame, m), its unobserved component filled in
+    se3d: list  # its standard error per camera axis, None along the yaw axis
+    se_txt: str  # the same, for messages
+    plane: np.ndarray  # (3, 2) orthonormal basis of the observed plane
+    z_swap: float  # paired z of swapped vs recorded (> 0: the swapped one fits better)
+    d_stored: float  # distance (m, in the plane) of the free estimate from the recorded translation
+    chi_stored: float  # ... as a chi-square (2 dof) in the free estimate's covariance
+    d_swapped: float  # distance (m, in the plane) from the swapped translation
+
+
 def _imu_camera_translation(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi, gyro_bias, shift: int, scale: float,
                             smoothing_frames: int, opts: CheckOptions) -> tuple[dict[str, Any], Finding, Any]:
     """Hand-eye estimate of cam_T_imu's translation through the images (see
@@ -692,13 +706,26 @@ def _imu_camera_translation(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi, g
         return est, Finding("imu-camera-translation", "OK",
                             "the recording barely moves or turns: the IMU-camera translation is not observable "
                             "(it is seen through turns); the recorded one is assumed"), None
+    ev = _translation_evidence(pairs, pairs.relative_imu(timestamps, ub, shift), C0, phi, axes, scale, opts, est)
+    if rig is not None and rig.translation == "swapped":
+        tracks = ("agree" if ev.z_swap >= 3.0 else "cannot tell the two apart" if ev.z_swap > -3.0
+                  else "prefer the recorded one")
+        return _swapped_rig(est, rig, C0, ev.se3d, f"the tracks {tracks}: z = {ev.z_swap:.1f}; free estimate "
+                                                    f"{_fmt_vec(ev.t_free, '.2f')} {ev.se_txt}")
+    return _translation_finding(est, ev, rig, C0, int(np.unique(pairs.landmark).size), opts)
+
+
+def _translation_evidence(pairs: _TrackPairs, rel: np.ndarray, C0: np.ndarray, phi, axes, scale: float,
+                          opts: CheckOptions, est: dict[str, Any]) -> _TranslationEvidence:
+    """The free fit of the translation in the plane perpendicular to the yaw axis and the
+    paired test of the two recorded conventions; records them in ``est``."""
+    t_stored, t_swapped = C0[:3, 3], swapped_translation(C0)
     # The translation is seen through rotation, (R_rel − I) t: a ground vehicle turns
     # about its yaw axis only, so the component along that axis is not observed.
     up_cam = _turned(C0, phi)[:3, :3] @ axes[1]
     e1 = np.cross(up_cam, [0.0, 0.0, 1.0]) if abs(up_cam[2]) < 0.9 else np.cross(up_cam, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)
     plane = np.column_stack([e1, np.cross(up_cam, e1)])
-    rel = pairs.relative_imu(timestamps, ub, shift)
     _, delta, cov, cost_free = _fit_translation(pairs, rel, C0, phi, plane, scale)
     t_free = t_stored + plane @ delta
     cov_p = cov + opts.translation_floor_m ** 2 * np.eye(2)
@@ -732,53 +759,51 @@ def _imu_camera_translation(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi, g
                                                  "free": float(np.sum(cost_free))}})
     se_txt = ("± (" + ", ".join("unobserved" if v is None else f"{v:.2f}" for v in se3d) + f") m, the "
               f"component along the yaw axis {_fmt_vec(up_cam, '.2f')} unobserved")
-    if rig is not None and rig.translation == "swapped":
-        tracks = ("agree" if z_swap >= 3.0 else "cannot tell the two apart" if z_swap > -3.0
-                  else "prefer the recorded one")
-        return _swapped_rig(est, rig, C0, se3d, f"the tracks {tracks}: z = {z_swap:.1f}; free estimate "
-                                                 f"{_fmt_vec(t_free, '.2f')} {se_txt}")
+    return _TranslationEvidence(t_free, se3d, se_txt, plane, z_swap, d_stored, chi_stored, d_swapped)
+
+
+def _translation_finding(est: dict[str, Any], ev: _TranslationEvidence, rig, C0: np.ndarray, n_landmarks: int,
+                         opts: CheckOptions) -> tuple[dict[str, Any], Finding, Any]:
+    """The finding (and the suggested cam_T_imu) from the evidence, for a rig that is not a
+    published calibration with its translation swapped."""
+    t_stored, t_swapped = C0[:3, 3].copy(), swapped_translation(C0)
+    est["imu_camera_translation_m_se"] = ev.se3d
     if rig is not None and rig.translation == "published":
         est["imu_camera_translation_m"] = t_stored.tolist()
-        est["imu_camera_translation_m_se"] = se3d
         return est, Finding("imu-camera-translation", "OK",
                             f"cam_T_imu is the published {rig.name} calibration (the tracks' free estimate "
-                            f"{_fmt_vec(t_free, '.2f')} {se_txt}; swapped vs recorded z = {z_swap:.1f}); nothing to do"), \
-            None
-    if d_stored <= opts.translation_warn_m or not chi_stored > _CHI2_2DOF_99:
+                            f"{_fmt_vec(ev.t_free, '.2f')} {ev.se_txt}; swapped vs recorded z = {ev.z_swap:.1f}); "
+                            f"nothing to do"), None
+    if ev.d_stored <= opts.translation_warn_m or not ev.chi_stored > _CHI2_2DOF_99:
         est["imu_camera_translation_m"] = t_stored.tolist()
-        est["imu_camera_translation_m_se"] = se3d
-        apart = float(np.linalg.norm(plane.T @ (t_stored - t_swapped)))
-        if apart > opts.translation_warn_m and z_swap > -opts.translation_decided_z:
-            n_lm = int(np.unique(pairs.landmark).size)
+        apart = float(np.linalg.norm(ev.plane.T @ (t_stored - t_swapped)))
+        if apart > opts.translation_warn_m and ev.z_swap > -opts.translation_decided_z:
             return est, Finding(
                 "imu-camera-translation", "WARN",
                 f"the tracks cannot tell the recorded cam_T_imu translation {_fmt_vec(t_stored, '.3f')} m from the "
                 f"swapped convention's {_fmt_vec(t_swapped, '.3f')} m (imu_T_cam's translation stored as "
-                f"cam_T_imu's; {apart:.1f} m apart): z = {z_swap:.1f} over {n_lm} landmarks, at least "
-                f"{opts.translation_decided_z:.0f} needed (free estimate {_fmt_vec(t_free, '.2f')} {se_txt}); verify "
-                f"the translation against the calibration's source (KITTI raw: R_rect_00 T_velo->cam T_imu->velo)"), \
-                None
+                f"cam_T_imu's; {apart:.1f} m apart): z = {ev.z_swap:.1f} over {n_landmarks} landmarks, at least "
+                f"{opts.translation_decided_z:.0f} needed (free estimate {_fmt_vec(ev.t_free, '.2f')} {ev.se_txt}); "
+                f"verify the translation against the calibration's source (KITTI raw: R_rect_00 T_velo->cam "
+                f"T_imu->velo)"), None
         return est, Finding("imu-camera-translation", "OK",
                             f"the tracks support the recorded IMU-camera translation {_fmt_vec(t_stored, '.3f')} m "
-                            f"(free estimate {_fmt_vec(t_free, '.2f')} {se_txt}); nothing to do"), None
-    if z_swap >= 3.0 and d_swapped < d_stored:
+                            f"(free estimate {_fmt_vec(ev.t_free, '.2f')} {ev.se_txt}); nothing to do"), None
+    if ev.z_swap >= 3.0 and ev.d_swapped < ev.d_stored:
         est["imu_camera_translation_m"] = t_swapped.tolist()
-        est["imu_camera_translation_m_se"] = se3d
         return est, Finding(
             "imu-camera-translation", "ERROR",
             f"cam_T_imu's translation {_fmt_vec(t_stored, '.3f')} m is imu_T_cam's (the camera's position in the IMU "
-            f"frame): the tracks fit cam_T_imu's translation {_fmt_vec(t_swapped, '.3f')} m better (z = {z_swap:.1f}), "
-            f"and their free estimate {_fmt_vec(t_free, '.2f')} {se_txt} lies {d_swapped:.2f} m from it and "
-            f"{d_stored:.2f} m from the recorded one; run with the suggested cam_T_imu"), \
-            [list(map(float, row)) for row in _with_translation(C0, t_swapped)]
-    t_sug = t_free
-    est["imu_camera_translation_m"] = t_sug.tolist()
-    est["imu_camera_translation_m_se"] = se3d
+            f"frame): the tracks fit cam_T_imu's translation {_fmt_vec(t_swapped, '.3f')} m better (z = "
+            f"{ev.z_swap:.1f}), and their free estimate {_fmt_vec(ev.t_free, '.2f')} {ev.se_txt} lies "
+            f"{ev.d_swapped:.2f} m from it and {ev.d_stored:.2f} m from the recorded one; run with the suggested "
+            f"cam_T_imu"), [list(map(float, row)) for row in _with_translation(C0, t_swapped)]
+    est["imu_camera_translation_m"] = ev.t_free.tolist()
     return est, Finding(
         "imu-camera-translation", "WARN",
-        f"cam_T_imu's translation is off by {d_stored:.2f} m: the tracks support {_fmt_vec(t_sug, '.2f')} {se_txt} "
-        f"(recorded {_fmt_vec(t_stored, '.3f')} m); run with the suggested cam_T_imu"), \
-        [list(map(float, row)) for row in _with_translation(C0, t_sug)]
+        f"cam_T_imu's translation is off by {ev.d_stored:.2f} m: the tracks support {_fmt_vec(ev.t_free, '.2f')} "
+        f"{ev.se_txt} (recorded {_fmt_vec(t_stored, '.3f')} m); run with the suggested cam_T_imu"), \
+        [list(map(float, row)) for row in _with_translation(C0, ev.t_free)]
 
 
 #: Units timestamps may have been recorded in by mistake: (seconds per unit, name).

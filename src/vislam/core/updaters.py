@@ -416,6 +416,29 @@ class _FirstStepTest:
 _FIRST_STEP_TEST = _FirstStepTest()
 
 
+def _relinearized_residual(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
+                           mu0: np.ndarray, lm0: np.ndarray, v0: np.ndarray) -> np.ndarray:
+    """The iterated update's residual at x_i, z − h(x_i) − H_i (x₀ ⊟ x_i), from ``r`` = z − h(x_i)."""
+    d = lm0[slots] - state.lm_mean[slots]  # m₀ − m_i (and v₀ − v_i with velocities)
+    if Hl.shape[2] == 6:
+        d = np.concatenate([d, v0[slots] - state.v_lm_in_world[slots]], axis=1)
+    return r - Hp @ se3_log(mu0 @ se3_inverse(state.imu_T_world)) - np.einsum("kij,kj->ki", Hl, d)
+
+
+def _restore_prior(state: SlamState, mu0, b0, lm0, v0, P0, factors) -> None:
+    """Back to the prior x₀, Σ₀ before a re-linearized update (Σ₀ kept in ``P0``, or
+    restored from the last gain's factors when ``P0`` is None)."""
+    state.imu_T_world = mu0.copy()
+    state.imu_bias = b0.copy()
+    state.lm_mean = lm0.copy()
+    state.v_lm_in_world = v0.copy()
+    if P0 is None:
+        P, B = state.cov, factors["B"]
+        P += B.T @ B  # Σ₀ = Σ + K S Kᵀ (in place)
+    else:
+        state.cov[...] = P0
+
+
 def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
                          N_pose: np.ndarray | None, iterations: int, update=None, tolerance: float = 0.0,
                          counts: list | None = None, first: tuple | None = None) -> np.ndarray:
@@ -440,8 +463,7 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     prior is narrow against the pixel noise costs one update and one prediction. They also
     stop when that step is larger than the step before (the first: x₁ − x₀ = K₀ r₀, in the
     same metric): Gauss-Newton that does not contract is moving away, so the last
-    iterate is kept (with the IMU-error state and two landmarks in view it drove b̂ to
-    14 σ; on the shared files with the defaults it never fires). The iteration therefore
+    iterate is kept. The iteration therefore
     goes on only if tolerance ≤ step ≤ the step already taken, and a first step below the
     tolerance ends it before any re-linearization (the same decision, cheaper).
     ``counts``: a list that receives the number of updates done. ``first``: (r, H_pose,
@@ -480,10 +502,7 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
         if i and not in_front.all():
             break  # keep the last iterate: the next linearization point has a point behind the camera
         if i:
-            d = lm0[slots] - state.lm_mean[slots]  # m₀ − m_i (and v₀ − v_i with velocities)
-            if Hl.shape[2] == 6:
-                d = np.concatenate([d, v0[slots] - state.v_lm_in_world[slots]], axis=1)
-            r = r - Hp @ se3_log(mu0 @ se3_inverse(state.imu_T_world)) - np.einsum("kij,kj->ki", Hl, d)
+            r = _relinearized_residual(state, slots, r, Hp, Hl, mu0, lm0, v0)
             if factors:
                 step = _step_size(state, slots, gain_times(factors, r - r_prev))
                 if step < tolerance:
@@ -493,15 +512,7 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
                 if step > prev_step:
                     break  # not contracting: Gauss-Newton would move away; keep the last iterate
                 prev_step = step
-            state.imu_T_world = mu0.copy()
-            state.imu_bias = b0.copy()
-            state.lm_mean = lm0.copy()
-            state.v_lm_in_world = v0.copy()
-            if P0 is None:
-                P, B = state.cov, factors["B"]
-                P += B.T @ B  # Σ₀ = Σ + K S Kᵀ (in place)
-            else:
-                state.cov[...] = P0
+            _restore_prior(state, mu0, b0, lm0, v0, P0, factors)
         update(state, slots, r, Hp, Hl, V, factors=factors)
         r_prev = r
         done += 1
