@@ -724,7 +724,6 @@ def evaluate(
     evaluation (:attr:`EvaluationResult.camera`): ``est_world_T_imu @ imu_T_cam``
     against ``gt_world_T_cam``.
     """
-    from evo import EvoException
     from evo.core.trajectory import PosePath3D
 
     camera = None
@@ -817,6 +816,8 @@ def _aligned_ape(ref, est_path, est: np.ndarray, notes: list):
     """APE with SE(3) Umeyama alignment (as evo_ape -a): (alignment 4x4, its ErrorStats,
     the aligned position error per pose, the aligned estimate); NaN with a note when the
     path cannot be aligned."""
+    from evo import EvoException
+
     aligned = copy.deepcopy(est_path)
     try:
         r_a, t_a, _ = aligned.align(ref, correct_scale=False)
@@ -836,6 +837,8 @@ def _aligned_ape(ref, est_path, est: np.ndarray, notes: list):
 def _rpe_stats(ref, est_path, notes: list):
     """RPE over one frame and over 100 m of ground-truth path: (translation, rotation,
     translation 100 m, rotation 100 m); the 100 m ones empty with a note on a shorter path."""
+    from evo import EvoException
+
     rel = evo_metrics.PoseRelation
     rpe_trans = ErrorStats.from_metric(_rpe(ref, est_path, rel.translation_part, 1, evo_metrics.Unit.frames))
     rpe_rot = ErrorStats.from_metric(_rpe(ref, est_path, rel.rotation_angle_deg, 1, evo_metrics.Unit.frames))
