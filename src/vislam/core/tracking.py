@@ -122,8 +122,17 @@ class TrackerOptions:
     klt_levels: int = 2
     #: KLT pyramid levels of the stereo match of a tracked point (started at its last disparity).
     stereo_tracked_levels: int = 0
-    #: KLT pyramid levels of the stereo match of a new corner (no disparity guess yet).
+    #: KLT pyramid levels of the stereo match of a new corner (no disparity guess yet; only with
+    #: stereo_min_score 0).
     stereo_levels: int = 4
+    #: Stereo match of a new corner by normalised cross-correlation of its stereo_window_px patch
+    #: along its row of the right image (the disparity range): the best score must reach this, and
+    #: the best score outside +-2 px of it must be stereo_uniqueness lower (repeated texture, the
+    #: road); sub-pixel by a parabola, then the affine step. 0 = KLT from zero disparity instead.
+    stereo_min_score: float = 0.8
+    stereo_uniqueness: float = 0.05
+    #: ... searched on this pyramid level (0 = the full image; each level halves the images).
+    stereo_search_level: int = 2
     #: KLT iterations per level and the convergence threshold (px).
     klt_iterations: int = 10
     klt_epsilon_px: float = 0.03
@@ -159,7 +168,7 @@ class TrackerOptions:
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                     raise ConfigError(f"{f.name} must be an integer, got {value!r}")
                 object.__setattr__(self, f.name, int(value))
-                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px", "stereo_tracked_levels", "detect_retry_frames",
+                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px", "stereo_tracked_levels", "detect_retry_frames", "stereo_search_level",
                                              "min_expected_frames") else 1):
                     raise ConfigError(f"{f.name} must be >= 1, got {value!r}")
             else:
@@ -358,6 +367,71 @@ class StereoTracker:
         ok &= (disparity >= o.min_disparity_px) & (disparity <= o.max_disparity_px)
         ok &= self._inside(right)
         return np.concatenate([left, right], axis=1), ok
+
+    def _search_images(self, frame):
+        """Left and right images on level ``stereo_search_level`` (float32) and the right image's
+        local mean and variance over the search patch (box filter), once per frame."""
+        cv2 = self._cv2
+        o = self.options
+        if "search" not in frame:
+            imgs = [frame["left"], frame["right"]]
+            for _ in range(o.stereo_search_level):
+                imgs = [cv2.pyrDown(i) for i in imgs]
+            L, R = (i.astype(np.float32) for i in imgs)
+            k = 2 * max(2, (o.stereo_window_px >> o.stereo_search_level) // 2) + 1
+            mean = cv2.boxFilter(R, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REPLICATE)
+            var = cv2.boxFilter(R * R, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REPLICATE) - mean * mean
+            frame["search"] = (L, R, var)
+        return frame["search"]
+
+    def _stereo_search(self, frame, left):
+        """Stereo match of new corners (n, 2) by NCC along their row (see ``stereo_min_score``).
+
+        The search runs on pyramid level ``stereo_search_level`` (images halved that many times;
+        the patch shrinks with them, at least 5 px), all corners at once: the zero-mean left patch
+        correlated with every right patch of the disparity range, over the right patch's standard
+        deviation (box filter) — OpenCV's TM_CCOEFF_NORMED. The affine step then places the match
+        on the full image. Returns (pixels (n, 4), ok)."""
+        o = self.options
+        n = left.shape[0]
+        if n == 0:
+            return np.zeros((0, 4)), np.zeros(0, bool)
+        L, R, var = self._search_images(frame)
+        s = float(2 ** o.stereo_search_level)
+        h, w = L.shape
+        r = max(2, (o.stereo_window_px >> o.stereo_search_level) // 2)
+        m = (2 * r + 1) ** 2
+        d_lo, d_hi = int(math.floor(o.min_disparity_px / s)), int(math.ceil(o.max_disparity_px / s))
+        u, v = (np.round(left / s).astype(int)).T
+        inside = (v >= r) & (v < h - r) & (u >= r) & (u < w - r)
+        u, v = np.where(inside, u, r), np.where(inside, v, r)
+        dy = np.arange(-r, r + 1)
+        T = L[(v[:, None, None] + dy[None, :, None]), (u[:, None, None] + dy[None, None, :])]  # (n, k, k)
+        T = T - T.mean(axis=(1, 2), keepdims=True)
+        t_norm = np.sqrt((T * T).sum(axis=(1, 2)))
+        P = d_hi - d_lo + 1  # candidate disparities d_hi ... d_lo (right centre x = u - d)
+        xs = u[:, None] - d_hi + np.arange(P)[None, :]  # (n, P) right centre columns
+        cols = np.clip(u[:, None] - d_hi - r + np.arange(P + 2 * r)[None, :], 0, w - 1)
+        strip = R[v[:, None, None] + dy[None, :, None], cols[:, None, :]]  # (n, k, P + 2r): the right rows
+        corr = np.zeros((n, P), np.float32)
+        for j in range(2 * r + 1):  # column j of every patch
+            corr += np.einsum("nyp,ny->np", strip[:, :, j:j + P], T[:, :, j])
+        valid = (xs >= r) & (xs < w - r)
+        sd = np.sqrt(np.maximum(var[v[:, None], np.clip(xs, 0, w - 1)], 0.0))
+        score = np.where(valid & (sd > 0.5), corr / (np.sqrt(m) * sd * t_norm[:, None] + 1e-9), -1.0)
+        k = np.argmax(score, axis=1)
+        idx = np.arange(n)
+        best = score[idx, k]
+        far = np.abs(np.arange(P)[None, :] - k[:, None]) > 2
+        second = np.where(far, score, -1.0).max(axis=1)
+        ok = inside & (best >= o.stereo_min_score) & (second <= best - o.stereo_uniqueness) & (k > 0) & (k < P - 1)
+        a, c = score[idx, np.maximum(k - 1, 0)], score[idx, np.minimum(k + 1, P - 1)]
+        den = a - 2 * best + c
+        sub = np.where(den < 0, 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
+        right = left.copy()
+        right[:, 0] = left[:, 0] - s * (u - (xs[idx, k] + sub))
+        stereo = np.concatenate([left, right], axis=1)
+        return stereo, ok & self._stereo_ok(stereo)
 
     def _triangulate(self, pixels):
         """(n, 3) points in the left camera frame from stereo pixels (n, 4)."""
@@ -709,8 +783,11 @@ class StereoTracker:
             st.rejected_stereo_new += int(np.count_nonzero(~contrast))
             new, tpl = new[contrast], tpl[contrast]
         tried = new
-        stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels,
-                                   o.stereo_window_px)
+        if o.stereo_min_score > 0:
+            stereo, sok = self._stereo_search(frame, new)
+        else:
+            stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels,
+                                       o.stereo_window_px)
         st.rejected_stereo_new += int(np.count_nonzero(~sok))
         stereo, tpl = stereo[sok], tpl[sok]
         if o.min_expected_frames > 0 and self._motion_ok:
