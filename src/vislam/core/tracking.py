@@ -159,6 +159,8 @@ class TrackerOptions:
     #: so a far point, whose depth is uncertain, may move further along its epipolar flow than a
     #: near one. 0 = the plain pixel distances (ransac_threshold_px / drift_threshold_px).
     stereo_sigma_px: float = 0.3
+    #: ... but the plain pixel distance stays below this multiple of the check's threshold.
+    gate_max_factor: float = 1.5
     #: RANSAC iterations of the geometric check.
     ransac_iterations: int = 100
     #: Fewest tracked points for the geometric check (fewer: the check is skipped).
@@ -501,7 +503,8 @@ class StereoTracker:
     def _gate(self, pred, pixels, q, cov, threshold_px):
         """True where the measured [uL, v, uR] (of ``pixels``) is within ``threshold_px`` of the
         predicted ``pred`` (n, 4) in the metric I + J cov J^T (J: projection Jacobian at the
-        predicted points ``q`` (n, 3), ``cov`` their covariance (n, 3, 3)); |vR - v| as before."""
+        predicted points ``q`` (n, 3), ``cov`` their covariance (n, 3, 3)), and the plain distance
+        in either image within ``gate_max_factor`` times it."""
         fx, fy = self.K[0, 0], self.K[1, 1]
         x, y, z = q[:, 0], q[:, 1], np.where(q[:, 2] > 0.1, q[:, 2], np.nan)
         zero = np.zeros_like(z)
@@ -513,7 +516,9 @@ class StereoTracker:
         ok = np.isfinite(S).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
         r, S = np.where(ok[:, None], r, 0.0), np.where(ok[:, None, None], S, np.eye(3))
         d2 = np.einsum("ni,ni->n", r, np.linalg.solve(S, r[..., None])[..., 0])
-        return ok & (d2 <= threshold_px ** 2) & (np.abs(pixels[:, 3] - pred[:, 3]) <= threshold_px)
+        cap = self.options.gate_max_factor * threshold_px
+        plain = np.maximum(np.hypot(r[:, 0], r[:, 1]), np.hypot(r[:, 2], pixels[:, 3] - pred[:, 3]))
+        return ok & (d2 <= threshold_px ** 2) & (plain <= cap) & (np.abs(pixels[:, 3] - pred[:, 3]) <= threshold_px)
 
     def _sample(self, image, pts, A, offsets=None):
         """(n, m) values of the float32 ``image`` at ``pts + A @ offsets`` (bilinear)."""
