@@ -178,15 +178,18 @@ def test_geometric_gate_allows_the_depth_uncertainty_of_far_points():
     tracker = StereoTracker(K, 0.5)
     tracker._shape = (375, 1242)
     X = np.array([[20.0, 1.0, 60.0], [0.5, 0.5, 20.0]])  # far at the side, nearer in the middle
-    birth = tracker._project(X)
-    birth[:, 2] -= 0.3  # the stereo match 0.3 px off (stereo_sigma_px): depth 5 % off for the far point
-    X_est, cov = tracker._triangulate(birth), tracker._point_covariance(birth)
-    assert cov[0, 2, 2] > 50 * cov[1, 2, 2]  # the depth variance grows with z^4
     ahead = np.array([0.0, 0.0, 10.0])  # ten frames later, 10 m further forward
-    measured, predicted = tracker._project(X - ahead), tracker._project(X_est - ahead)
-    err = np.abs(measured - predicted).max(axis=1)
-    assert err[0] > 1.5 > err[1]  # the far point is beyond the plain 1.5 px bound
-    assert tracker._gate(predicted, measured, X_est - ahead, cov, 1.5).all()
+    for off_px, far_kept in ((0.2, True), (0.3, False)):
+        birth = tracker._project(X)
+        birth[:, 2] -= off_px  # the stereo match off by about stereo_sigma_px: the far depth 3-5 % off
+        X_est, cov = tracker._triangulate(birth), tracker._point_covariance(birth)
+        assert cov[0, 2, 2] > 50 * cov[1, 2, 2]  # the depth variance grows with z^4
+        measured, predicted = tracker._project(X - ahead), tracker._project(X_est - ahead)
+        err = np.abs(measured - predicted).max(axis=1)
+        assert err[0] > 1.5 > err[1]  # the far point is beyond the plain 1.5 px bound
+        kept = tracker._gate(predicted, measured, X_est - ahead, cov, 1.5)
+        # ... and kept while within gate_max_factor (1.5) x 1.5 px in plain pixels
+        assert kept[1] and kept[0] == far_kept == (err[0] <= 2.25)
     # a 3 px error across the flow (v) is refused for either point
     off = measured.copy()
     off[:, [1, 3]] += 3.0

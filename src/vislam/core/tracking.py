@@ -25,20 +25,25 @@ Each frame (:meth:`StereoTracker.process`, one method per step):
    follows the surface point the track started on rather than drifting with the
    translation-only KLT. The template's steepest-descent images are computed once per
    track (no image gradients). A track whose warp leaves a residual above
-   ``affine_max_residual`` of the template's contrast ends; one whose warp has scaled the
+   ``affine_max_residual`` of the template's contrast (or ``affine_relative_residual`` times
+   its own first right match's residual, if larger) ends; one whose warp has scaled the
    template by ``affine_reanchor_scale`` takes its current appearance as the template.
 3. **Geometric check** (``_check_geometry``) — the previous frame's stereo triangulation of
    the tracked points against their new left pixels: P3P in RANSAC (``cv2.solvePnPRansac``)
-   gives the camera motion; a track whose predicted left *or* right pixel is more than
-   ``ransac_threshold_px`` from its measurement is rejected.
+   gives the camera motion; a track whose predicted ``[uL, v, uR]`` is more than
+   ``ransac_threshold_px`` from its measurement is rejected — measured in the metric of the
+   prediction's uncertainty (the stereo triangulation's covariance from ``stereo_sigma_px``,
+   carried to the pixels: a far point's uncertain depth lets it move further along its flow),
+   and never more than ``gate_max_factor`` times the threshold in plain pixels.
 3b. **Drift check** — the camera poses chained from the frame-to-frame P3P motions carry
-   each track's first stereo triangulation to the current frame; a track whose left or right
-   position is more than ``drift_threshold_px`` from it ends.
+   each track's first stereo triangulation (and its covariance) to the current frame; a track
+   whose left or right position is more than ``drift_threshold_px`` from it (same metric) ends.
 4. **Detection** (``_new_tracks``) — Shi-Tomasi corners (``cv2.goodFeaturesToTrack``, on each
    cell alone) at least ``min_distance_px`` from every live track, in the cells of a
    ``grid_cols x grid_rows`` grid below their share of ``target_features``; matched into the
-   right image by KLT from zero disparity (``stereo_window_px``, ``stereo_levels``) and the
-   affine step. A corner whose stereo point leaves the view under the last motion within
+   right image by normalised cross-correlation along the row on pyramid level
+   ``stereo_search_level`` (all corners at once; a best score below ``stereo_min_score`` or a
+   second peak within ``stereo_uniqueness`` of it refuses the corner) and the affine step. A corner whose stereo point leaves the view under the last motion within
    ``min_expected_frames`` is not started; a cell whose try started few tracks rests
    (``detect_retry_frames``). New corners get new ids (0, 1, 2, ... in order of detection).
 
