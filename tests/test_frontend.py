@@ -142,6 +142,60 @@ def test_tracker_on_shifted_texture_recovers_disparity_and_motion(tmp_path):
     assert np.all(np.abs(moved - [-7.5, -2.5]) < 0.1)
 
 
+def test_new_corner_stereo_search_is_opencv_ncc_and_refuses_repeated_texture(tmp_path):
+    source = open_stereo_source(_plain_folder(tmp_path / "plain", disparity=13.0))
+    left, right = source.read_pair(0)
+    for level in (0, 1, 2):
+        tracker = StereoTracker(source.K, source.baseline_m, TrackerOptions(stereo_search_level=level))
+        tracker._shape = left.shape
+        corners = cv2.goodFeaturesToTrack(left, 60, 0.01, 10).reshape(-1, 2).astype(float)
+        corners = corners[(corners[:, 0] > 60) & (corners[:, 1] > 20) & (corners[:, 1] < 180)]
+        stereo, ok = tracker._stereo_search({"left": left, "right": right}, corners)
+        assert ok.mean() > 0.9
+        # before the affine step: the search level's pixel, sub-pixel by the parabola
+        np.testing.assert_allclose(np.median(stereo[ok, 0] - stereo[ok, 2]), 13.0, atol=0.3 * 2 ** level)
+        # the vectorised score is OpenCV's TM_CCOEFF_NORMED
+        L, R, _ = tracker._search_images({"left": left, "right": right})
+        r, s = max(2, (21 >> level) // 2), 2 ** level
+        u, v = np.round(corners[0] / s).astype(int)
+        x0 = max(r, u - int(np.ceil(250 / s)))
+        score = cv2.matchTemplate(R[v - r:v + r + 1, x0 - r:u + r + 1], L[v - r:v + r + 1, u - r:u + r + 1],
+                                  cv2.TM_CCOEFF_NORMED).ravel()
+        assert abs(u - (x0 + np.argmax(score)) - (corners[0, 0] - stereo[0, 2]) / s) < 1.0
+    # stripes repeating every 16 px: every match is ambiguous, none is kept
+    x = np.arange(320)
+    stripes = np.tile((128 + 80 * np.sin(2 * np.pi * x / 16)).astype(np.uint8), (200, 1))
+    stripes[:, ::37] = 30  # some corners
+    tracker = StereoTracker(source.K, source.baseline_m)
+    tracker._shape = stripes.shape
+    pts = np.array([[150.0, 100.0], [200.0, 60.0], [250.0, 140.0]])
+    _, ok = tracker._stereo_search({"left": stripes, "right": np.roll(stripes, -5, axis=1)}, pts)
+    assert not ok.any()
+
+
+def test_geometric_gate_allows_the_depth_uncertainty_of_far_points():
+    K = np.array([[700.0, 0, 600], [0, 700, 180], [0, 0, 1]])
+    tracker = StereoTracker(K, 0.5)
+    tracker._shape = (375, 1242)
+    X = np.array([[20.0, 1.0, 60.0], [0.5, 0.5, 20.0]])  # far at the side, nearer in the middle
+    ahead = np.array([0.0, 0.0, 10.0])  # ten frames later, 10 m further forward
+    for off_px, far_kept in ((0.2, True), (0.3, False)):
+        birth = tracker._project(X)
+        birth[:, 2] -= off_px  # the stereo match off by about stereo_sigma_px: the far depth 3-5 % off
+        X_est, cov = tracker._triangulate(birth), tracker._point_covariance(birth)
+        assert cov[0, 2, 2] > 50 * cov[1, 2, 2]  # the depth variance grows with z^4
+        measured, predicted = tracker._project(X - ahead), tracker._project(X_est - ahead)
+        err = np.abs(measured - predicted).max(axis=1)
+        assert err[0] > 1.5 > err[1]  # the far point is beyond the plain 1.5 px bound
+        kept = tracker._gate(predicted, measured, X_est - ahead, cov, 1.5)
+        # ... and kept while within gate_max_factor (1.5) x 1.5 px in plain pixels
+        assert kept[1] and kept[0] == far_kept == (err[0] <= 2.25)
+    # a 3 px error across the flow (v) is refused for either point
+    off = measured.copy()
+    off[:, [1, 3]] += 3.0
+    assert not tracker._gate(predicted, off, X_est - ahead, cov, 1.5).any()
+
+
 def test_tracker_counts_every_track_end_with_its_length(tmp_path):
     # the texture slides 9 px per frame to the left: corners leave through the left edge
     source = open_stereo_source(_plain_folder(tmp_path / "plain", n=10, shift=(9.0, 0.0)))

@@ -25,20 +25,25 @@ Each frame (:meth:`StereoTracker.process`, one method per step):
    follows the surface point the track started on rather than drifting with the
    translation-only KLT. The template's steepest-descent images are computed once per
    track (no image gradients). A track whose warp leaves a residual above
-   ``affine_max_residual`` of the template's contrast ends; one whose warp has scaled the
+   ``affine_max_residual`` of the template's contrast (or ``affine_relative_residual`` times
+   its own first right match's residual, if larger) ends; one whose warp has scaled the
    template by ``affine_reanchor_scale`` takes its current appearance as the template.
 3. **Geometric check** (``_check_geometry``) — the previous frame's stereo triangulation of
    the tracked points against their new left pixels: P3P in RANSAC (``cv2.solvePnPRansac``)
-   gives the camera motion; a track whose predicted left *or* right pixel is more than
-   ``ransac_threshold_px`` from its measurement is rejected.
+   gives the camera motion; a track whose predicted ``[uL, v, uR]`` is more than
+   ``ransac_threshold_px`` from its measurement is rejected — measured in the metric of the
+   prediction's uncertainty (the stereo triangulation's covariance from ``stereo_sigma_px``,
+   carried to the pixels: a far point's uncertain depth lets it move further along its flow),
+   and never more than ``gate_max_factor`` times the threshold in plain pixels.
 3b. **Drift check** — the camera poses chained from the frame-to-frame P3P motions carry
-   each track's first stereo triangulation to the current frame; a track whose left or right
-   position is more than ``drift_threshold_px`` from it ends.
+   each track's first stereo triangulation (and its covariance) to the current frame; a track
+   whose left or right position is more than ``drift_threshold_px`` from it (same metric) ends.
 4. **Detection** (``_new_tracks``) — Shi-Tomasi corners (``cv2.goodFeaturesToTrack``, on each
    cell alone) at least ``min_distance_px`` from every live track, in the cells of a
    ``grid_cols x grid_rows`` grid below their share of ``target_features``; matched into the
-   right image by KLT from zero disparity (``stereo_window_px``, ``stereo_levels``) and the
-   affine step. A corner whose stereo point leaves the view under the last motion within
+   right image by normalised cross-correlation along the row on pyramid level
+   ``stereo_search_level`` (all corners at once; a best score below ``stereo_min_score`` or a
+   second peak within ``stereo_uniqueness`` of it refuses the corner) and the affine step. A corner whose stereo point leaves the view under the last motion within
    ``min_expected_frames`` is not started; a cell whose try started few tracks rests
    (``detect_retry_frames``). New corners get new ids (0, 1, 2, ... in order of detection).
 
@@ -110,6 +115,10 @@ class TrackerOptions:
     #: relative to the template's contrast (RMS / standard deviation).
     affine_radius_px: int = 6
     affine_max_residual: float = 0.4
+    #: ... or this multiple of the residual of the track's own first right-image match, if larger: a
+    #: template whose two views differed at birth (noise on a weak texture) is not held to a bound
+    #: that its first frame barely met (0 = only affine_max_residual).
+    affine_relative_residual: float = 1.5
     #: A track whose left warp has scaled its template by more than this (linear, area = square)
     #: takes its current appearance as the new template (0 = never: tracks end when the warp's
     #: determinant leaves (0.2, 5)). Approaching points grow and show finer texture than at first.
@@ -122,8 +131,17 @@ class TrackerOptions:
     klt_levels: int = 2
     #: KLT pyramid levels of the stereo match of a tracked point (started at its last disparity).
     stereo_tracked_levels: int = 0
-    #: KLT pyramid levels of the stereo match of a new corner (no disparity guess yet).
+    #: KLT pyramid levels of the stereo match of a new corner (no disparity guess yet; only with
+    #: stereo_min_score 0).
     stereo_levels: int = 4
+    #: Stereo match of a new corner by normalised cross-correlation of its stereo_window_px patch
+    #: along its row of the right image (the disparity range): the best score must reach this, and
+    #: the best score outside +-2 px of it must be stereo_uniqueness lower (repeated texture, the
+    #: road); sub-pixel by a parabola, then the affine step. 0 = KLT from zero disparity instead.
+    stereo_min_score: float = 0.8
+    stereo_uniqueness: float = 0.05
+    #: ... searched on this pyramid level (0 = the full image; each level halves the images).
+    stereo_search_level: int = 2
     #: KLT iterations per level and the convergence threshold (px).
     klt_iterations: int = 10
     klt_epsilon_px: float = 0.03
@@ -140,6 +158,14 @@ class TrackerOptions:
     #: chained P3P motions, must reproject within this many pixels of the current left and right
     #: positions (catches slow slides, e.g. of corners made by an occluding edge); 0 = off.
     drift_threshold_px: float = 2.0
+    #: The geometric and drift checks allow for the uncertainty of the stereo triangulation they
+    #: predict from: the error [uL, v, uR] is measured against I + J C J^T (J: the prediction's
+    #: Jacobian; C: the triangulation's covariance from this pixel noise of the stereo match, px),
+    #: so a far point, whose depth is uncertain, may move further along its epipolar flow than a
+    #: near one. 0 = the plain pixel distances (ransac_threshold_px / drift_threshold_px).
+    stereo_sigma_px: float = 0.3
+    #: ... but the plain pixel distance stays below this multiple of the check's threshold.
+    gate_max_factor: float = 1.5
     #: RANSAC iterations of the geometric check.
     ransac_iterations: int = 100
     #: Fewest tracked points for the geometric check (fewer: the check is skipped).
@@ -159,7 +185,7 @@ class TrackerOptions:
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                     raise ConfigError(f"{f.name} must be an integer, got {value!r}")
                 object.__setattr__(self, f.name, int(value))
-                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px", "stereo_tracked_levels", "detect_retry_frames",
+                if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px", "stereo_tracked_levels", "detect_retry_frames", "stereo_search_level",
                                              "min_expected_frames") else 1):
                     raise ConfigError(f"{f.name} must be >= 1, got {value!r}")
             else:
@@ -359,6 +385,71 @@ class StereoTracker:
         ok &= self._inside(right)
         return np.concatenate([left, right], axis=1), ok
 
+    def _search_images(self, frame):
+        """Left and right images on level ``stereo_search_level`` (float32) and the right image's
+        local mean and variance over the search patch (box filter), once per frame."""
+        cv2 = self._cv2
+        o = self.options
+        if "search" not in frame:
+            imgs = [frame["left"], frame["right"]]
+            for _ in range(o.stereo_search_level):
+                imgs = [cv2.pyrDown(i) for i in imgs]
+            L, R = (i.astype(np.float32) for i in imgs)
+            k = 2 * max(2, (o.stereo_window_px >> o.stereo_search_level) // 2) + 1
+            mean = cv2.boxFilter(R, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REPLICATE)
+            var = cv2.boxFilter(R * R, cv2.CV_32F, (k, k), borderType=cv2.BORDER_REPLICATE) - mean * mean
+            frame["search"] = (L, R, var)
+        return frame["search"]
+
+    def _stereo_search(self, frame, left):
+        """Stereo match of new corners (n, 2) by NCC along their row (see ``stereo_min_score``).
+
+        The search runs on pyramid level ``stereo_search_level`` (images halved that many times;
+        the patch shrinks with them, at least 5 px), all corners at once: the zero-mean left patch
+        correlated with every right patch of the disparity range, over the right patch's standard
+        deviation (box filter) — OpenCV's TM_CCOEFF_NORMED. The affine step then places the match
+        on the full image. Returns (pixels (n, 4), ok)."""
+        o = self.options
+        n = left.shape[0]
+        if n == 0:
+            return np.zeros((0, 4)), np.zeros(0, bool)
+        L, R, var = self._search_images(frame)
+        s = float(2 ** o.stereo_search_level)
+        h, w = L.shape
+        r = max(2, (o.stereo_window_px >> o.stereo_search_level) // 2)
+        m = (2 * r + 1) ** 2
+        d_lo, d_hi = int(math.floor(o.min_disparity_px / s)), int(math.ceil(o.max_disparity_px / s))
+        u, v = (np.round(left / s).astype(int)).T
+        inside = (v >= r) & (v < h - r) & (u >= r) & (u < w - r)
+        u, v = np.where(inside, u, r), np.where(inside, v, r)
+        dy = np.arange(-r, r + 1)
+        T = L[(v[:, None, None] + dy[None, :, None]), (u[:, None, None] + dy[None, None, :])]  # (n, k, k)
+        T = T - T.mean(axis=(1, 2), keepdims=True)
+        t_norm = np.sqrt((T * T).sum(axis=(1, 2)))
+        P = d_hi - d_lo + 1  # candidate disparities d_hi ... d_lo (right centre x = u - d)
+        xs = u[:, None] - d_hi + np.arange(P)[None, :]  # (n, P) right centre columns
+        cols = np.clip(u[:, None] - d_hi - r + np.arange(P + 2 * r)[None, :], 0, w - 1)
+        strip = R[v[:, None, None] + dy[None, :, None], cols[:, None, :]]  # (n, k, P + 2r): the right rows
+        corr = np.zeros((n, P), np.float32)
+        for j in range(2 * r + 1):  # column j of every patch
+            corr += np.einsum("nyp,ny->np", strip[:, :, j:j + P], T[:, :, j])
+        valid = (xs >= r) & (xs < w - r)
+        sd = np.sqrt(np.maximum(var[v[:, None], np.clip(xs, 0, w - 1)], 0.0))
+        score = np.where(valid & (sd > 0.5), corr / (np.sqrt(m) * sd * t_norm[:, None] + 1e-9), -1.0)
+        k = np.argmax(score, axis=1)
+        idx = np.arange(n)
+        best = score[idx, k]
+        far = np.abs(np.arange(P)[None, :] - k[:, None]) > 2
+        second = np.where(far, score, -1.0).max(axis=1)
+        ok = inside & (best >= o.stereo_min_score) & (second <= best - o.stereo_uniqueness) & (k > 0) & (k < P - 1)
+        a, c = score[idx, np.maximum(k - 1, 0)], score[idx, np.minimum(k + 1, P - 1)]
+        den = a - 2 * best + c
+        sub = np.where(den < 0, 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
+        right = left.copy()
+        right[:, 0] = left[:, 0] - s * (u - (xs[idx, k] + sub))
+        stereo = np.concatenate([left, right], axis=1)
+        return stereo, ok & self._stereo_ok(stereo)
+
     def _triangulate(self, pixels):
         """(n, 3) points in the left camera frame from stereo pixels (n, 4)."""
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
@@ -393,8 +484,46 @@ class StereoTracker:
         uL = fx * q[:, 0] / z + cx
         v = fy * q[:, 1] / z + cy
         uR = fx * (q[:, 0] - self.baseline_m) / z + cx
+        if o.stereo_sigma_px > 0:
+            pred = np.stack([uL, v, uR, v], axis=1)
+            cov = R @ self._point_covariance(p_prev) @ R.T
+            return good & self._gate(pred, pixels, q, cov, o.ransac_threshold_px)
         err = np.maximum(np.hypot(uL - pixels[:, 0], v - pixels[:, 1]), np.hypot(uR - pixels[:, 2], v - pixels[:, 3]))
         return good & (err <= o.ransac_threshold_px)
+
+    def _point_covariance(self, pixels):
+        """(n, 3, 3) covariance of the stereo triangulation of ``pixels`` (n, 4) in the left camera,
+        from stereo_sigma_px on uL, v and uR (the Jacobian by finite differences)."""
+        eps = 1e-3
+        base = self._triangulate(pixels)
+        J = np.empty((pixels.shape[0], 3, 3))
+        for j, col in enumerate((0, 1, 2)):
+            p = pixels.copy()
+            p[:, col] += eps
+            if col == 1:
+                p[:, 3] += eps
+            J[:, :, j] = (self._triangulate(p) - base) / eps
+        return self.options.stereo_sigma_px ** 2 * (J @ J.transpose(0, 2, 1))
+
+    def _gate(self, pred, pixels, q, cov, threshold_px):
+        """True where the measured [uL, v, uR] (of ``pixels``) is within ``threshold_px`` of the
+        predicted ``pred`` (n, 4) in the metric I + J cov J^T (J: projection Jacobian at the
+        predicted points ``q`` (n, 3), ``cov`` their covariance (n, 3, 3)), and the plain distance
+        in either image within ``gate_max_factor`` times it."""
+        fx, fy = self.K[0, 0], self.K[1, 1]
+        x, y, z = q[:, 0], q[:, 1], np.where(q[:, 2] > 0.1, q[:, 2], np.nan)
+        zero = np.zeros_like(z)
+        J = np.stack([np.stack([fx / z, zero, -fx * x / z ** 2], 1),
+                      np.stack([zero, fy / z, -fy * y / z ** 2], 1),
+                      np.stack([fx / z, zero, -fx * (x - self.baseline_m) / z ** 2], 1)], axis=1)
+        S = np.eye(3) + J @ cov @ J.transpose(0, 2, 1)
+        r = pixels[:, :3] - pred[:, :3]
+        ok = np.isfinite(S).all(axis=(1, 2)) & np.isfinite(r).all(axis=1)
+        r, S = np.where(ok[:, None], r, 0.0), np.where(ok[:, None, None], S, np.eye(3))
+        d2 = np.einsum("ni,ni->n", r, np.linalg.solve(S, r[..., None])[..., 0])
+        cap = self.options.gate_max_factor * threshold_px
+        plain = np.maximum(np.hypot(r[:, 0], r[:, 1]), np.hypot(r[:, 2], pixels[:, 3] - pred[:, 3]))
+        return ok & (d2 <= threshold_px ** 2) & (plain <= cap) & (np.abs(pixels[:, 3] - pred[:, 3]) <= threshold_px)
 
     def _sample(self, image, pts, A, offsets=None):
         """(n, m) values of the float32 ``image`` at ``pts + A @ offsets`` (bilinear)."""
@@ -421,16 +550,17 @@ class StereoTracker:
         x, y = self._offsets[None, :, 0], self._offsets[None, :, 1]
         return np.stack([T, Tx, Ty, Tx * x, Tx * y, Ty * x, Ty * y], axis=-1).astype(np.float32)
 
-    def _affine(self, image, templates, pts, A):
+    def _affine(self, image, templates, pts, A, max_residual=None):
         """Inverse-compositional Gauss-Newton of ``image(pts + A x) = g T(x) + c`` per track.
 
         The template's steepest-descent images (:meth:`_templates`) and with them the normal
         matrix are fixed over the iterations, so each iteration samples the float32 ``image``
-        once (no image gradients). Returns (pts, A, ok)."""
+        once (no image gradients). ``max_residual``: per-track bound on the residual relative to
+        the template's contrast (default ``affine_max_residual``). Returns (pts, A, ok, residual)."""
         o = self.options
         n = pts.shape[0]
         if n == 0:
-            return pts, A, np.zeros(0, bool)
+            return pts, A, np.zeros(0, bool), np.zeros(0)
         pts = pts.astype(np.float64).copy()
         A = A.astype(np.float64).copy()
         T_all = templates[..., 0]
@@ -439,7 +569,7 @@ class StereoTracker:
         try:
             H_inv = np.linalg.inv(H)
         except np.linalg.LinAlgError:
-            return pts, A, np.zeros(n, bool)
+            return pts, A, np.zeros(n, bool), np.full(n, np.inf)
         gain = np.ones(n, np.float32)
         bias = np.zeros(n, np.float32)
         active = np.arange(n)  # tracks still moving by more than affine_step_px per iteration
@@ -468,9 +598,10 @@ class StereoTracker:
         rms = np.sqrt(np.mean((I - gain[:, None] * T - bias[:, None]) ** 2, axis=1))
         contrast = T.std(axis=1) + 1e-6
         det = np.linalg.det(A)
-        ok = (rms / contrast <= o.affine_max_residual) & (det > 0.2) & (det < 5.0) & (gain > 0.3) & (gain < 3.0)
+        residual = rms / contrast
+        ok = (residual <= (o.affine_max_residual if max_residual is None else max_residual)) & (det > 0.2) & (det < 5.0) & (gain > 0.3) & (gain < 3.0)
         ok &= np.isfinite(pts).all(axis=1) & self._inside(pts)
-        return pts, A, ok
+        return pts, A, ok, residual
 
     def _predict(self, prev):
         """Predicted left pixels (n, 2) and disparities (n,) of the live tracks from the last motion
@@ -514,13 +645,17 @@ class StereoTracker:
             q = q @ R.T + t
         return frames
 
-    def _drift_ok(self, p_in_ref, pixels):
+    def _drift_ok(self, p_in_ref, pixels, cov_ref=None):
         """True where the chained first triangulation reprojects within drift_threshold_px."""
         o = self.options
         if o.drift_threshold_px <= 0 or pixels.shape[0] == 0:
             return np.ones(pixels.shape[0], bool)
         q = p_in_ref @ self._cam_T_ref[:3, :3].T + self._cam_T_ref[:3, 3]
         pred = self._project(q)
+        if o.stereo_sigma_px > 0 and cov_ref is not None:
+            R = self._cam_T_ref[:3, :3]
+            keep = self._gate(pred, pixels, q, R @ cov_ref @ R.T, o.drift_threshold_px)
+            return keep | ~np.isfinite(pred).all(axis=1)  # NaN (no reference point): kept
         err = np.maximum(np.hypot(pred[:, 0] - pixels[:, 0], pred[:, 1] - pixels[:, 1]),
                          np.hypot(pred[:, 2] - pixels[:, 2], pred[:, 3] - pixels[:, 3]))
         return ~(err > o.drift_threshold_px)  # NaN (no reference point): kept
@@ -661,10 +796,12 @@ class StereoTracker:
             tracks.pixels = stereo[sok]
             if o.affine_radius_px <= 0:
                 return tracks
-        pl, AL, okl = self._affine(frame["left_f"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0])
+        bound = np.maximum(o.affine_max_residual, o.affine_relative_residual * tracks.residual0)
+        pl, AL, okl, _ = self._affine(frame["left_f"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0],
+                                      bound)
         guess_r = tracks.pixels[:, 2:] + (pl - tracks.pixels[:, :2]) if o.stereo_tracked_levels > 0 else \
             pl - np.stack([disparity, np.zeros_like(disparity)], axis=1)
-        pr, AR, okr = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1])
+        pr, AR, okr, _ = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1], bound)
         tracks.pixels = np.concatenate([pl, pr], axis=1)
         tracks.warps = np.stack([AL, AR], axis=1)
         tracks = self._end(tracks, okl & okr & self._stereo_ok(tracks.pixels), "appearance")
@@ -694,7 +831,7 @@ class StereoTracker:
         step = np.eye(4)
         step[:3, :3], step[:3, 3] = self._motion
         self._cam_T_ref = step @ self._cam_T_ref
-        return self._end(tracks, self._drift_ok(tracks.refs, tracks.pixels), "drift")
+        return self._end(tracks, self._drift_ok(tracks.refs, tracks.pixels, tracks.refs_cov), "drift")
 
     def _new_tracks(self, frame, tracks: "_Tracks") -> "_Tracks":
         """Step 4: corners in the cells below their share, matched into the right image."""
@@ -709,8 +846,11 @@ class StereoTracker:
             st.rejected_stereo_new += int(np.count_nonzero(~contrast))
             new, tpl = new[contrast], tpl[contrast]
         tried = new
-        stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels,
-                                   o.stereo_window_px)
+        if o.stereo_min_score > 0:
+            stereo, sok = self._stereo_search(frame, new)
+        else:
+            stereo, sok = self._stereo(frame["left"], frame["right"], new, np.zeros(new.shape[0]), o.stereo_levels,
+                                       o.stereo_window_px)
         st.rejected_stereo_new += int(np.count_nonzero(~sok))
         stereo, tpl = stereo[sok], tpl[sok]
         if o.min_expected_frames > 0 and self._motion_ok:
@@ -719,20 +859,24 @@ class StereoTracker:
             stereo, tpl = stereo[stay], tpl[stay]
         A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
         if o.affine_radius_px > 0 and stereo.shape[0]:
-            pr, A[:, 1], okr = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1])
+            pr, A[:, 1], okr, res0 = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1])
             stereo = np.concatenate([stereo[:, :2], pr], axis=1)
             aok = okr & self._stereo_ok(stereo)
             st.rejected_stereo_new += int(np.count_nonzero(~aok))
-            stereo, tpl, A = stereo[aok], tpl[aok], A[aok]
+            stereo, tpl, A, res0 = stereo[aok], tpl[aok], A[aok], res0[aok]
+        else:
+            res0 = np.zeros(stereo.shape[0])
         cap = self._within_need(stereo[:, :2])
-        stereo, tpl, A = stereo[cap], tpl[cap], A[cap]
+        stereo, tpl, A, res0 = stereo[cap], tpl[cap], A[cap], res0[cap]
         self._rest_cells(tried, stereo[:, :2])
         n = stereo.shape[0]
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
         ref_T_cam = np.linalg.inv(self._cam_T_ref)
         refs = self._triangulate(stereo) @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]
-        return _Tracks(ids, stereo, np.full((n, 4), np.nan), tpl, A, refs, np.full(n, st.frames, np.int64))
+        cov = ref_T_cam[:3, :3] @ self._point_covariance(stereo) @ ref_T_cam[:3, :3].T
+        return _Tracks(ids, stereo, np.full((n, 4), np.nan), tpl, A, refs, np.full(n, st.frames, np.int64), res0,
+                       cov)
 
     def _commit(self, frame, tracks: "_Tracks") -> tuple[np.ndarray, np.ndarray]:
         """Keep this frame's tracks (sorted by id) and its left image for the next one."""
@@ -754,11 +898,14 @@ class _Tracks:
     warps: np.ndarray  # (n, 2, 2, 2): left and right affine warps of the template
     refs: np.ndarray  # (n, 3): first triangulation in the first frame's camera (NaN: none)
     born: np.ndarray  # (n,) int64: frame index of the first observation
+    residual0: np.ndarray  # (n,): the affine residual (relative to contrast) of its first right match
+    refs_cov: np.ndarray  # (n, 3, 3): covariance of refs (stereo_sigma_px)
 
     @classmethod
     def empty(cls, m: int) -> "_Tracks":
         return cls(np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, m, 7), np.float32),
-                   np.zeros((0, 2, 2, 2)), np.zeros((0, 3)), np.zeros(0, np.int64))
+                   np.zeros((0, 2, 2, 2)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0),
+                   np.zeros((0, 3, 3)))
 
     def __len__(self) -> int:
         return int(self.ids.size)
