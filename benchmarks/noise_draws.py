@@ -15,7 +15,7 @@ Every run is SLAM (``--mode smoother`` for the smoother) with ``--velocity-noise
 listed; graded against the ground truth in the camera frame (the estimate turned into
 left-camera poses with the cam_T_imu the filter used). ``--lever-arm corrected`` runs
 with the IMU-camera translation corrected (the files store imu_T_cam's, see
-vislam.core.check.swapped_translation), ``file`` (the default) with the file's. Prints
+vislam.core.rigs.swapped_translation), ``file`` (the default) with the file's. Prints
 each run and the mean ATE / KITTI t-error per setting. The lever-arm comparison::
 
     PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --outlier-seeds '' --lever-arm file
@@ -42,7 +42,7 @@ import vislam
 from vislam.core.noise import NoiseSpec, inject_noise
 from vislam.core.options import FilterOptions
 from vislam.tools.dataset_io import load_sequence
-from vislam.core.check import swapped_translation
+from vislam.core.rigs import swapped_translation
 from vislam.core.lie import se3_inverse
 from vislam.tools.evaluation import evaluate
 from vislam.tools.trajectory_io import read_trajectory

@@ -86,7 +86,7 @@ import numpy as np
 from vislam.core.corrections import apply_corrections
 from vislam.core.lie import se3_exp, se3_inverse, so3_exp
 from vislam.core.options import FilterOptions
-from vislam.core.rigs import match_known_rig
+from vislam.core.rigs import match_known_rig, swapped_translation
 from vislam.core.sequence import Sequence, StereoObservations
 
 __all__ = ["CheckOptions", "Finding", "CheckResult", "Analysis", "ANALYSES", "check_sequence", "estimate_white_noise",
@@ -613,14 +613,6 @@ def _with_translation(cam_T_imu: np.ndarray, t_cam: np.ndarray) -> np.ndarray:
     return C
 
 
-def swapped_translation(cam_T_imu: np.ndarray) -> np.ndarray:
-    """The translation cam_T_imu has when its stored translation is really imu_T_cam's
-    (the camera's position in the IMU frame, the mix-up of the KITTI course files):
-    ``−R t`` with R, t the stored rotation block and translation."""
-    C = np.asarray(cam_T_imu, dtype=np.float64)
-    return -C[:3, :3] @ C[:3, 3]
-
-
 def _smoothed(u: np.ndarray, k: int) -> np.ndarray:
     """The (T, 6) twists averaged over ``k`` samples (centred, ends held)."""
     if k <= 1:
@@ -655,6 +647,11 @@ def _fit_translation(pairs: _TrackPairs, rel: np.ndarray, cam_T_imu: np.ndarray,
     return sol.x[:3], sol.x[3:], cov, cost
 
 
+def _suggested_cam_T_imu(C0: np.ndarray, t_cam: np.ndarray) -> list:
+    """``suggested.yaml``'s cam_T_imu: ``C0`` with its translation replaced by ``t_cam``, as 4 rows."""
+    return [list(map(float, row)) for row in _with_translation(C0, t_cam)]
+
+
 def _swapped_rig(est: dict[str, Any], rig, C0: np.ndarray, se3d, evidence: str) -> tuple[dict[str, Any], Finding, Any]:
     """The ERROR for a cam_T_imu whose rotation is a published calibration's
     (:func:`vislam.core.rigs.match_known_rig`) and whose translation is that calibration's
@@ -667,7 +664,7 @@ def _swapped_rig(est: dict[str, Any], rig, C0: np.ndarray, se3d, evidence: str) 
         f"cam_T_imu's rotation is the published {rig.name} calibration and its translation {_fmt_vec(t_stored, '.3f')} m "
         f"is that calibration's imu_T_cam translation (the camera's position in the IMU frame): cam_T_imu's "
         f"translation is {_fmt_vec(t_swapped, '.3f')} m ({evidence}); run with the suggested cam_T_imu"), \
-        [list(map(float, row)) for row in _with_translation(C0, t_swapped)]
+        _suggested_cam_T_imu(C0, t_swapped)
 
 
 @dataclass
@@ -797,13 +794,13 @@ def _translation_finding(est: dict[str, Any], ev: _TranslationEvidence, rig, C0:
             f"frame): the tracks fit cam_T_imu's translation {_fmt_vec(t_swapped, '.3f')} m better (z = "
             f"{ev.z_swap:.1f}), and their free estimate {_fmt_vec(ev.t_free, '.2f')} {ev.se_txt} lies "
             f"{ev.d_swapped:.2f} m from it and {ev.d_stored:.2f} m from the recorded one; run with the suggested "
-            f"cam_T_imu"), [list(map(float, row)) for row in _with_translation(C0, t_swapped)]
+            f"cam_T_imu"), _suggested_cam_T_imu(C0, t_swapped)
     est["imu_camera_translation_m"] = ev.t_free.tolist()
     return est, Finding(
         "imu-camera-translation", "WARN",
         f"cam_T_imu's translation is off by {ev.d_stored:.2f} m: the tracks support {_fmt_vec(ev.t_free, '.2f')} "
         f"{ev.se_txt} (recorded {_fmt_vec(t_stored, '.3f')} m); run with the suggested cam_T_imu"), \
-        [list(map(float, row)) for row in _with_translation(C0, ev.t_free)]
+        _suggested_cam_T_imu(C0, ev.t_free)
 
 
 #: Units timestamps may have been recorded in by mistake: (seconds per unit, name).

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["KnownRig", "KNOWN_RIGS", "match_known_rig"]
+__all__ = ["KnownRig", "KNOWN_RIGS", "match_known_rig", "swapped_translation"]
 
 _IMU_TO_VELO_R = [[9.999976e-01, 7.553071e-04, -2.035826e-03],
                   [-7.854027e-04, 9.998898e-01, -1.482298e-02],
@@ -44,6 +44,14 @@ _SEP30_VELO_TO_CAM_T = [-7.137748e-03, -7.482656e-02, -3.336324e-01]
 _SEP30_R_RECT_00 = [[9.999280e-01, 8.085985e-03, -8.866797e-03],
                     [-8.123205e-03, 9.999583e-01, -4.169750e-03],
                     [8.832711e-03, 4.241477e-03, 9.999520e-01]]
+
+
+def swapped_translation(cam_T_imu: np.ndarray) -> np.ndarray:
+    """The translation cam_T_imu has when its stored translation is really imu_T_cam's
+    (the camera's position in the IMU frame, the mix-up of the KITTI course files):
+    ``−R t`` with R, t the stored rotation block and translation."""
+    C = np.asarray(cam_T_imu, dtype=np.float64)
+    return -C[:3, :3] @ C[:3, 3]
 
 
 def _rigid(R, t) -> np.ndarray:
@@ -96,11 +104,10 @@ def match_known_rig(cam_T_imu, rotation_tol: float = 1e-6, translation_tol_m: fl
         if np.max(np.abs(C[:3, :3] - P[:3, :3])) > rotation_tol:
             continue
         t, t_pub = C[:3, 3], P[:3, 3]
-        swapped = -C[:3, :3] @ t  # cam_T_imu's translation if t is imu_T_cam's
         err = float(np.linalg.norm(t - t_pub))
         if err <= translation_tol_m:
             kind = "published"
-        elif np.linalg.norm(swapped - t_pub) <= translation_tol_m:
+        elif np.linalg.norm(swapped_translation(C) - t_pub) <= translation_tol_m:  # t is imu_T_cam's
             kind = "swapped"
         else:
             kind = "other"

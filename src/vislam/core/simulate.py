@@ -75,6 +75,7 @@ import numpy as np
 from vislam.core.camera import StereoCamera
 from vislam.core.lie import se3_exp, se3_inverse
 from vislam.core.propagation import body_to_level
+from vislam.core.rigs import swapped_translation
 from vislam.core.sequence import Sequence, StereoObservations, frozen_array
 from vislam.errors import ConfigError
 
@@ -117,7 +118,7 @@ def _rigid_cam_T_imu() -> np.ndarray:
     if np.linalg.det(R) < 0:  # pragma: no cover - the recorded matrix is a rotation
         R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
     T[:3, :3] = R
-    T[:3, 3] = -R @ T[:3, 3]  # the stored vector is imu_T_cam's translation
+    T[:3, 3] = swapped_translation(T)  # the stored vector is imu_T_cam's translation
     T.setflags(write=False)
     return T
 
