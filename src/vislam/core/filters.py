@@ -63,6 +63,7 @@ from vislam.core.sequence import Calibration, Frame
 from vislam.core.stalls import StallRemapBuffer
 from vislam.core.state import SlamState
 from vislam.core.updaters import (
+    FirstStepTest,
     StereoModel,
     conditional_residual_model,
     initialization_guard,
@@ -488,6 +489,7 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         # the landmark motion model keeps Cartesian (p, v) landmarks, where iterating
         # converges on the linearized triangulation's error: one update (see update_iterations)
         self._iterations = 1 if self._motion else opts.update_iterations
+        self._first_step_test = FirstStepTest()  # whether the iterated update's first-step test pays
         self._velocity_var = opts.landmark_velocity_std_mps**2
         self._accel_var = opts.landmark_acceleration_std_mps2**2
         self._update = slam_update_reference if reference else slam_update
@@ -741,7 +743,8 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         if self._iterations > 1 and joint.any():
             correction = slam_update_iterated(state, self._model, slots[joint], z[joint], V, N_pose,
                                               self._iterations, self._update, opts.update_iteration_tolerance,
-                                              self.diagnostics.update_counts, (r[joint], Hp[joint], Hl[joint]))
+                                              self.diagnostics.update_counts, (r[joint], Hp[joint], Hl[joint]),
+                                              self._first_step_test)
         else:
             correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
         if drift and ok.any():

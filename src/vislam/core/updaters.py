@@ -392,11 +392,12 @@ def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
     return math.sqrt(max(size, 0.0))
 
 
-class _FirstStepTest:
+class FirstStepTest:
     """Whether to test the first step before re-linearizing (slam_update_iterated). Both
     orders take the same decisions; the test first saves a linearization when it settles
     the frame and costs one step-size evaluation when it does not. It is kept while it
-    settles at least a fifth of the recent frames, and tried again every 32nd frame."""
+    settles at least a fifth of the recent frames, and tried again every 32nd frame. One
+    per filter (its frames' history); without one, the test always runs."""
 
     def __init__(self):
         self.rate = 1.0  # running share of the frames the test settled
@@ -412,8 +413,6 @@ class _FirstStepTest:
     def record(self, settled: bool) -> None:
         self.rate += 0.1 * (float(settled) - self.rate)
 
-
-_FIRST_STEP_TEST = _FirstStepTest()
 
 
 def _relinearized_residual(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
@@ -439,9 +438,25 @@ def _restore_prior(state: SlamState, mu0, b0, lm0, v0, P0, factors) -> None:
         state.cov[...] = P0
 
 
+def _next_step_size(state: SlamState, slots: np.ndarray, factors: dict, r: np.ndarray, r_prev: np.ndarray,
+                    prev_step: float | None, tolerance: float) -> float | None:
+    """The adaptive iterated update's step x_{i+1} − x_i ≈ K_{i−1} (r̃_i − r̃_{i−1}) in σ,
+    or None when the iteration stops: converged (below ``tolerance``) or not contracting
+    (larger than ``prev_step``, the step before; the first, x_1 − x_0 = K_0 r_0, when None)."""
+    step = _step_size(state, slots, gain_times(factors, r - r_prev))
+    if step < tolerance:
+        return None  # converged: the re-linearization would move the estimate by a negligible step
+    if prev_step is None:  # the size of the step already taken, x_1 − x_0 = K_0 r_0
+        prev_step = _step_size(state, slots, gain_times(factors, r_prev))
+    if step > prev_step:
+        return None  # not contracting: Gauss-Newton would move away; keep the last iterate
+    return step
+
+
 def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
                          N_pose: np.ndarray | None, iterations: int, update=None, tolerance: float = 0.0,
-                         counts: list | None = None, first: tuple | None = None) -> np.ndarray:
+                         counts: list | None = None, first: tuple | None = None,
+                         first_step_test: FirstStepTest | None = None) -> np.ndarray:
     """Iterated EKF update (Gauss-Newton on the frame's observations) in place.
 
     Re-linearizes at the updated estimate x_i and redoes the update from the prior x₀, Σ₀::
@@ -453,24 +468,25 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     nothing; H_i OC-projected with ``N_pose`` when given). ``iterations`` = 1 is the EKF
     update. ``update``: the update function (default :func:`slam_update`).
 
-    ``tolerance`` > 0 makes ``iterations`` a maximum (adaptive iterated update): before
-    each re-linearized update, the step it would take is predicted to first order with
-    the last gain, ``x_{i+1} − x_i ≈ K_{i−1} (r̃_i − r̃_{i−1})`` (r̃_i the residual
-    z − h(x_i) − H_i (x₀ ⊟ x_i) the update would use: a linear model leaves it
-    unchanged), and the iterations stop when that step is below ``tolerance`` standard
-    deviations (of the pose and of every observed landmark, marginally, under the
-    current covariance) — the linearization at x_i then gives nothing new. A frame whose
-    prior is narrow against the pixel noise costs one update and one prediction. They also
-    stop when that step is larger than the step before (the first: x₁ − x₀ = K₀ r₀, in the
-    same metric): Gauss-Newton that does not contract is moving away, so the last
-    iterate is kept. The iteration therefore
-    goes on only if tolerance ≤ step ≤ the step already taken, and a first step below the
-    tolerance ends it before any re-linearization (the same decision, cheaper).
-    ``counts``: a list that receives the number of updates done. ``first``: (r, H_pose,
-    H_lm) of these observations at the prior, when the caller has them already.
+    ``tolerance`` > 0 makes ``iterations`` a maximum (adaptive iterated update): before each
+    re-linearized update, the step it would take is predicted to first order with the last
+    gain, ``x_{i+1} − x_i ≈ K_{i−1} (r̃_i − r̃_{i−1})`` (r̃_i the residual z − h(x_i) − H_i
+    (x₀ ⊟ x_i) the update would use: a linear model leaves it unchanged), and the iterations
+    stop when that step is below ``tolerance`` standard deviations (of the pose and of every
+    observed landmark, marginally, under the current covariance) — the linearization at x_i
+    then gives nothing new. A frame whose prior is narrow against the pixel noise costs one
+    update and one prediction. They also stop when that step is larger than the step before
+    (the first: x₁ − x₀ = K₀ r₀, in the same metric): Gauss-Newton that does not contract is
+    moving away, so the last iterate is kept. The iteration therefore goes on only if
+    tolerance ≤ step ≤ the step already taken, and a first step below the tolerance ends it
+    before any re-linearization (the same decision, cheaper). ``counts``: a list that
+    receives the number of updates done. ``first``: (r, H_pose, H_lm) of these observations
+    at the prior, when the caller has them already. ``first_step_test``: the caller's
+    :class:`FirstStepTest` (whether that first-step test pays).
     Returns the total pose correction ε, μ = exp(ε) μ₀.
     """
     update = update or slam_update
+    first_step_test = first_step_test or FirstStepTest()  # without one: always test
     mu0 = state.imu_T_world.copy()
     b0 = state.imu_bias.copy()  # the IMU-error state (observations do not depend on it)
     lm0 = state.lm_mean.copy()
@@ -485,15 +501,15 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     for i in range(max(int(iterations), 1)):
         if i == 0 and first is not None:
             (r, Hp, Hl), in_front = first, None
-        elif i == 1 and factors and _FIRST_STEP_TEST.worth_it():
+        elif i == 1 and factors and first_step_test.worth_it():
             # The iteration goes on only if tolerance <= step <= prev_step (the two tests
             # below), so a first step x_1 − x_0 = K_0 r_0 already below the tolerance ends
             # it whatever the re-linearization says: decide that before paying for it (the
             # same decision and the same state; on the sparse files most frames stop here,
-            # on the dense ones almost none, where the test is skipped: _FirstStepTest).
+            # on the dense ones almost none, where the test is skipped: FirstStepTest).
             first_dx = factors["dx"] if "dx" in factors else gain_times(factors, r_prev)
             prev_step = _step_size(state, slots, first_dx)
-            _FIRST_STEP_TEST.record(prev_step < tolerance)
+            first_step_test.record(prev_step < tolerance)
             if prev_step < tolerance:
                 break
             r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
@@ -504,14 +520,9 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
         if i:
             r = _relinearized_residual(state, slots, r, Hp, Hl, mu0, lm0, v0)
             if factors:
-                step = _step_size(state, slots, gain_times(factors, r - r_prev))
-                if step < tolerance:
-                    break  # converged: the re-linearization would move the estimate by a negligible step
-                if prev_step is None:  # the size of the step already taken, x_1 − x_0 = K_0 r_0
-                    prev_step = _step_size(state, slots, gain_times(factors, r_prev))
-                if step > prev_step:
-                    break  # not contracting: Gauss-Newton would move away; keep the last iterate
-                prev_step = step
+                prev_step = _next_step_size(state, slots, factors, r, r_prev, prev_step, tolerance)
+                if prev_step is None:
+                    break
             _restore_prior(state, mu0, b0, lm0, v0, P0, factors)
         update(state, slots, r, Hp, Hl, V, factors=factors)
         r_prev = r
