@@ -16,11 +16,21 @@ listed; graded against the ground truth in the camera frame (the estimate turned
 left-camera poses with the cam_T_imu the filter used). ``--lever-arm corrected`` runs
 with the IMU-camera translation corrected (the files store imu_T_cam's, see
 vislam.core.rigs.swapped_translation), ``file`` (the default) with the file's. Prints
-each run and the mean ATE / KITTI t-error per setting. The lever-arm comparison::
+each run and the mean ATE / KITTI t-error per setting. ``--lever-arm-shift X,Y,Z`` adds to that translation (camera frame; +Z moves the IMU
+forward). The lever-arm comparison (docs/data.md, "The dense files and the EKF")::
 
-    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --outlier-seeds '' --lever-arm file
-    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --outlier-seeds '' --lever-arm corrected
-    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --outlier-seeds '' --lever-arm corrected --mode smoother
+    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm file \
+        --options '{"repeated_observations": "skip"}'
+    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm corrected \
+        --options '{"repeated_observations": "skip"}'
+    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm corrected
+    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm file
+    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm corrected --lever-arm-shift 0,0,1
+    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm corrected --mode smoother
+    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm corrected --outlier-seeds '' \
+        --no-file --draw-gyro-bias 0.0041,0.0049,0.0049      # with and without --options skip
+    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm corrected --outlier-seeds '' \
+        --no-file --draws 0,1,2 --draw-velocities truth --options '{"repeated_observations": "skip"}'
 
 The measurements behind ``FilterOptions.max_depth_m``'s default::
 
@@ -43,7 +53,7 @@ from vislam.core.noise import NoiseSpec, inject_noise
 from vislam.core.options import FilterOptions
 from vislam.tools.dataset_io import load_sequence
 from vislam.core.rigs import swapped_translation
-from vislam.core.lie import se3_inverse
+from vislam.core.lie import se3_inverse, se3_log
 from vislam.tools.evaluation import evaluate
 from vislam.tools.trajectory_io import read_trajectory
 
@@ -58,24 +68,46 @@ def main(argv=None) -> int:
     parser.add_argument("--lever-arm", choices=("file", "corrected"), default="file",
                         help="the files' cam_T_imu, or with its translation corrected (swapped)")
     parser.add_argument("--mode", choices=("slam", "smoother"), default="slam")
+    parser.add_argument("--lever-arm-shift", default="0,0,0", metavar="X,Y,Z",
+                        help="added to cam_T_imu's translation (camera frame, m): +Z moves the IMU forward")
+    parser.add_argument("--draw-velocities", choices=("clean", "truth"), default="clean",
+                        help="what the draws add noise to: sparse 0027's clean velocities, or the ground "
+                             "truth's own twists (the IMU motion under the published calibration)")
+    parser.add_argument("--draw-gyro-bias", default="0,0,0", metavar="X,Y,Z",
+                        help="a constant added to the draws' angular rates (rad/s, IMU frame)")
+    parser.add_argument("--no-file", action="store_true", help="leave out the file as shared")
     args = parser.parse_args(argv)
     data = Path(args.data)
     dense = load_sequence(data / "dense" / "0027.npz")
     sparse = load_sequence(data / "sparse" / "0027.npz")
     gt_cam = read_trajectory(data / "groundtruth" / "0027.txt", "kitti").world_T_body
     extra = json.loads(args.options)
-    if args.lever_arm == "corrected":
+    shift = np.array([float(x) for x in args.lever_arm_shift.split(",")])
+    if args.lever_arm == "corrected" or shift.any():
         C = np.array(dense.cam_T_imu)
-        C[:3, 3] = swapped_translation(dense.cam_T_imu)
+        if args.lever_arm == "corrected":
+            C[:3, 3] = swapped_translation(dense.cam_T_imu)
+        C[:3, 3] += shift
         extra["cam_T_imu"] = C.tolist()
     depths = [float(x) for x in args.depths.split(",")]
-    cases = [("as shared", dense)]
+    base_v, base_w = sparse.linear_velocity_in_imu_mps, sparse.angular_velocity_in_imu_radps
+    if args.draw_velocities == "truth":
+        C_pub = np.array(dense.cam_T_imu)
+        C_pub[:3, 3] = swapped_translation(dense.cam_T_imu)
+        world_T_imu = gt_cam @ C_pub
+        n_gt = min(len(world_T_imu), sparse.n_frames)
+        rel = se3_log(se3_inverse(world_T_imu[:n_gt - 1]) @ world_T_imu[1:n_gt])
+        twist = np.zeros((sparse.n_frames, 6))  # sample k+1 describes k -> k+1
+        twist[1:n_gt] = rel / np.diff(sparse.timestamps_s[:n_gt])[:, None]
+        base_v, base_w = twist[:, :3], twist[:, 3:]
+    gyro_bias = np.array([float(x) for x in args.draw_gyro_bias.split(",")])
+    cases = [] if args.no_file else [("as shared", dense)]
     for seed in [int(x) for x in args.outlier_seeds.split(",") if x]:
         cases.append((f"outliers s{seed}", inject_noise(dense, NoiseSpec(outlier_fraction=0.05, seed=seed))[0]))
     for n in [int(x) for x in args.draws.split(",") if x]:
         rng = np.random.default_rng(100 + n)
-        v = sparse.linear_velocity_in_imu_mps + rng.normal(0, 0.5, sparse.linear_velocity_in_imu_mps.shape)
-        w = sparse.angular_velocity_in_imu_radps + rng.normal(0, 0.05, sparse.angular_velocity_in_imu_radps.shape)
+        v = base_v + rng.normal(0, 0.5, base_v.shape)
+        w = base_w + rng.normal(0, 0.05, base_w.shape) + gyro_bias
         cases.append((f"draw {n}", dense.replace(linear_velocity_in_imu_mps=v, angular_velocity_in_imu_radps=w)))
     results = {d: [] for d in depths}
     for name, seq in cases:

@@ -185,7 +185,7 @@ def test_online_stall_remap_equals_the_remapped_sequence():
     seq = sim.sequence
     max_lag = int(track_lags(seq.observations).max())
     assert max_lag >= 2  # the drive has stalled tracks
-    base = vislam.FilterOptions(**NOISY)
+    base = vislam.FilterOptions(**NOISY, repeated_observations="skip")  # the remap runs with skip
     online = vislam.run(seq, "slam", base.replace(stalled_tracks="remap", stall_max_delay_frames=max_lag))
     offline = vislam.run(remap_sequence(seq), "slam", base.replace(stalled_tracks="keep"))
     np.testing.assert_allclose(online.world_T_imu, offline.world_T_imu, rtol=0, atol=1e-9)
@@ -202,7 +202,7 @@ def test_online_pose_is_predicted_to_the_newest_frame():
     """Behind by the stall delay, the filter still reports the newest frame's pose: the
     last updated pose predicted with the IMU samples received since."""
     sim = simulate_drive(SimulationOptions(seed=6, n_frames=60, stall_period=10))
-    f = vislam.SlamFilter(sim.sequence.calibration, vislam.FilterOptions(stall_max_delay_frames=5))
+    f = vislam.SlamFilter(sim.sequence.calibration, vislam.FilterOptions(stall_max_delay_frames=5, repeated_observations="skip"))
     for frame in sim.sequence.frames():
         f.step(frame)
         assert f.frame_index == frame.index

@@ -1438,9 +1438,9 @@ def _analyse_tracker_artifacts(run: _Check) -> Analysis:
     return Analysis(findings=[
         Finding("repeated-observations", "OK",
                 f"{o['repeated']} observations ({100 * rep_share:.1f} %) repeat the previous frame's "
-                f"pixels exactly (tracker artifact; the tracks are one frame late afterwards; "
+                f"pixels exactly (tracker artifact: there the tracks restart on a new point; "
                 f"{describe_repeat_evidence(o['repeat_evidence'])}): "
-                + ("the filter skips them by default (repeated_observations: skip); nothing to do"
+                + ("the filters handle them by default (repeated_observations: auto); nothing to do"
                    if rep_share > 0 else "nothing to do")),
         Finding("disparity", "OK",
                 f"{npd} observations with non-positive disparity (uL <= uR): "

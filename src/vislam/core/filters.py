@@ -235,8 +235,9 @@ class MappingFilter(_FrozenLog, StepwiseFilter):
         self._builder = MapBuilder()
         self.stats = RunStats()
         self._delta = FrameStatsCounter(self.stats)
-        self._repeated = RepeatDetector(self.options.repeated_observations != "use", self.stats, calibration.camera)
-        self._split = self.options.repeated_observations == "split"
+        repeated = self.options.repeated_policy("mapping")
+        self._repeated = RepeatDetector(repeated != "use", self.stats, calibration.camera)
+        self._split = repeated == "split"
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
         self._init_frozen_log()
@@ -505,8 +506,9 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         self._builder = MapBuilder()
         self.stats = RunStats()
         self._delta = FrameStatsCounter(self.stats)
-        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats, calibration.camera)
-        self._split = opts.repeated_observations == "split"
+        repeated = opts.repeated_policy("slam")
+        self._repeated = RepeatDetector(repeated != "use", self.stats, calibration.camera)
+        self._split = repeated == "split"
         self._last_correction = np.zeros(6)  # pose correction of the last update (OC transition)
         self._tau2_sum = 0.0  # Σ τ² of the predictions so far (delayed initialization)
         self._pending = _PendingLandmarks(opts, self._model, self._tracks, self._freeze_rejected_new)

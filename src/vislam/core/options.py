@@ -63,7 +63,7 @@ MODES = ("localization", "mapping", "slam", "smoother")
 #: Robust kernels of the smoother and of its batch refinement.
 KERNELS = ("cauchy", "huber", "none")
 #: Policies for observations that repeat the previous frame's pixels exactly.
-REPEATED_POLICIES = ("skip", "split", "use")
+REPEATED_POLICIES = ("auto", "skip", "split", "use")
 #: Policies for stalled tracks.
 STALL_POLICIES = ("remap", "keep")
 #: EKF variants.
@@ -282,9 +282,10 @@ class StallOptions(_Group):
     """Observations that repeat the previous frame's pixels, and the tracks they stall."""
 
     TITLE: ClassVar[str] = "stalled tracks"
-    repeated_observations: str = option("skip", "an observation repeating its landmark's previous pixels bit for "
-                                        "bit: skip it, split the track there, or use it", kind="choice",
-                                        choices=REPEATED_POLICIES)
+    repeated_observations: str = option("auto", "an observation repeating its landmark's previous pixels bit for "
+                                        "bit: skip it (with the remap), split the track there (a new landmark, "
+                                        "in sync), or use it; auto: split in the SLAM EKF, skip elsewhere",
+                                        kind="choice", choices=REPEATED_POLICIES)
     policy: str = option("remap", "remap: give each observation of a stalled track to the frame it was taken "
                          "(SLAM, with repeated_observations skip; runs stall_max_delay_frames behind); keep: "
                          "use it at the frame it arrives", kind="choice", choices=STALL_POLICIES,
@@ -533,7 +534,18 @@ class FilterOptions:
     @property
     def remaps_stalled_tracks(self) -> bool:
         """Whether SLAM runs the stalled-track remap (see :attr:`stalled_tracks`)."""
-        return self.stalls.policy == "remap" and self.stalls.repeated_observations == "skip"
+        return self.stalls.policy == "remap" and self.repeated_policy("slam") == "skip"
+
+    def repeated_policy(self, estimator: str) -> str:
+        """``repeated_observations`` as the given estimator ("slam": the SLAM EKF,
+        "smoother", "mapping") applies it: "auto" is "split" in the SLAM EKF — a restarted
+        track is a new point in sync, and the remap's lag model, exact only at constant
+        motion, biases the EKF in turns (docs/data.md, the lever arm) — and "skip" (with
+        the remap) in the smoother, whose robust kernel keeps the long tracks' benefit."""
+        value = self.stalls.repeated_observations
+        if value != "auto":
+            return value
+        return "split" if estimator == "slam" else "skip"
 
     @property
     def W(self) -> np.ndarray:

@@ -232,6 +232,11 @@ class SimulationOptions:
     #: ``observation_true_pixels`` and ``observation_is_outlier`` then describe the frame
     #: an observation's pixels come from.
     stall_period: int = 0
+    #: What a stalled track shows after its repeat: "lag" (the frame before, as above) or
+    #: "restart" (what the KITTI feature files do, :func:`_restart_tracks`): the tracker
+    #: restarts on a new static point, seen from the re-detection frame where the old one
+    #: was seen from the frame before, and the track follows it in sync.
+    stall_model: str = "lag"
 
     # --- recording faults (what ``vislam check`` must find; see _apply_recording_faults) --
     #: The velocities (linear and angular) are recorded in a frame turned by this rotation
@@ -295,6 +300,10 @@ class SimulationOptions:
         if f.name == "velocity_frame":
             if value not in ("body", "level"):
                 raise ConfigError(f"velocity_frame must be body or level, got {value!r}")
+            return
+        if f.name == "stall_model":
+            if value not in ("lag", "restart"):
+                raise ConfigError(f"stall_model must be lag or restart, got {value!r}")
             return
         if f.type in ("int", int):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
@@ -1241,7 +1250,10 @@ def _recording(opts: SimulationOptions, ego: _EgoMotion, cam_T_imu: np.ndarray, 
         measured, recorded_cam_T_imu = _apply_recording_faults(opts, ego.timestamps, measured, cam_T_imu)
 
     true_pixels = pairs.true_pixels
-    if opts.stall_period > 0:
+    if opts.stall_period > 0 and opts.stall_model == "restart":
+        pixels, true_pixels = _restart_tracks(pairs.frame, ids, opts.stall_period, pixels, true_pixels, is_outlier,
+                                              cam_T_imu @ se3_inverse(ego.world_T_imu), camera)
+    elif opts.stall_period > 0:
         pixels, true_pixels, is_outlier = _stall_tracks(pairs.frame, ids, opts.stall_period,
                                                         (pixels, true_pixels, is_outlier))
     offsets = np.zeros(T + 1, dtype=np.int64)
@@ -1335,3 +1347,48 @@ def _stall_tracks(frames: np.ndarray, ids: np.ndarray, period: int, columns: tup
     source = np.empty(n, dtype=np.int64)
     source[order] = order[np.arange(n) - lag]  # same track, lag frames earlier
     return tuple(c[source] for c in columns)
+
+
+def _restart_tracks(frames: np.ndarray, ids: np.ndarray, period: int, pixels: np.ndarray, true_pixels: np.ndarray,
+                    is_outlier: np.ndarray, cam_T_world: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+    """Stalled tracks that restart (``SimulationOptions.stall_model = "restart"``).
+
+    At a re-detection frame r (a multiple of ``period``) a track that began before r
+    repeats its previous observation's pixels z exactly, and from then on follows the
+    point Q whose coordinates in camera r are the stereo point of z in camera r − 1::
+
+        p_Q_in_world = world_T_cam_r · π⁻¹(z)
+
+    (a new static point; the repeat is its exact, noiseless observation). Its later
+    observations are Q's projections plus each observation's own pixel noise; gross
+    outliers stay as they are, and a track whose previous observation is an outlier or
+    has no positive disparity does not restart. Returns (pixels, true pixels): the true
+    pixels of a restarted observation are Q's. The (landmark, frame) pairs are unchanged."""
+    pixels, true_pixels = pixels.copy(), true_pixels.copy()
+    noise = pixels - true_pixels
+    order = np.lexsort((frames, ids))
+    f, i = frames[order], ids[order]
+    new_track = np.ones(order.size, dtype=bool)
+    new_track[1:] = (i[1:] != i[:-1]) | (f[1:] != f[:-1] + 1)
+    stall = ~new_track & (f % period == 0)
+    track_end = np.append(np.flatnonzero(new_track)[1:], order.size)  # one past each track's last position
+    end_of = track_end[np.cumsum(new_track) - 1]
+    for s in np.flatnonzero(stall):
+        prev = order[s - 1]
+        z = pixels[prev]
+        if is_outlier[prev] or z[0] - z[2] <= 0:
+            continue
+        world_T_cam = se3_inverse(cam_T_world[f[s]])
+        q = camera.triangulate(z)
+        p_world = world_T_cam[:3, :3] @ q + world_T_cam[:3, 3]
+        pixels[order[s]] = true_pixels[order[s]] = z
+        later = order[s + 1:end_of[s]]  # a later stall restarts again from its own previous pixels
+        if later.size:
+            cams = cam_T_world[frames[later]]
+            p_cam = np.einsum("kij,j->ki", cams[:, :3, :3], p_world) + cams[:, :3, 3]
+            front = p_cam[:, 2] > 0.1
+            proj = camera.project(p_cam[front])
+            idx = later[front]
+            true_pixels[idx] = proj
+            pixels[idx] = np.where(is_outlier[idx, None], pixels[idx], proj + noise[idx])
+    return pixels, true_pixels

@@ -37,6 +37,8 @@ continuing tracks repeat their previous pixels, and from then on they are one fr
 late. The repeat is dropped (``RepeatDetector``) and, with "remap", an observation at
 frame k of a track that has stalled L times since it began is attached to pose k − L
 (the stall count is kept per id from the track's first observation, guards or not).
+With ``repeated_observations: split`` a repeat ends its track instead and starts a new
+landmark of the same id, in sync ("auto", the default, is "skip" with the remap here).
 
 Outliers: besides the kernel, the observations of frame t are checked after the update
 of frame t + 1; those whose whitened error exceeds ``smoother_outlier_sigma`` are
@@ -266,11 +268,14 @@ class SmootherFilter(StepwiseFilter):
         params.relinearizeSkip = 1
         self._window = float(opts.smoother_window_s)
         self._smoother = gtsam.IncrementalFixedLagSmoother(self._window, params)
-        self._remap = opts.stalled_tracks == "remap"
+        # "split": a repeat ends its track and starts a new one, in sync (no remap)
+        repeated = opts.repeated_policy("smoother")
+        self._split = repeated == "split"
+        self._remap = opts.stalled_tracks == "remap" and repeated == "skip"
 
         self.stats = RunStats()
         self._delta = FrameStatsCounter(self.stats)
-        self._repeated = RepeatDetector(opts.repeated_observations != "use", self.stats, calibration.camera)
+        self._repeated = RepeatDetector(repeated != "use", self.stats, calibration.camera)
         self._builder = MapBuilder()
         self.frame_index = -1
         self.last_frame_stats = FrameStats(frame=-1)
@@ -479,6 +484,10 @@ class SmootherFilter(StepwiseFilter):
         remap attaches it to pose t − lag); tracks not seen end, rejected ones out of view
         are forgotten. Returns (repeat mask, lag)."""
         rep = self._repeated(t, ids_seen, z)
+        if self._split and rep.any():
+            for i in ids_seen[rep].tolist():
+                self._tracks.pop(i, None)  # the track ends; the repeat starts a new one
+            rep = np.zeros_like(rep)
         pos, hit = sorted_positions(ids_seen, self._prev_ids)
         lag = np.where(hit, self._prev_lag[pos] if self._prev_ids.size else 0, 0)
         if self._remap:
