@@ -103,8 +103,8 @@ def test_compare_with_ground_truth_slam_beats_localization_under_imu_noise(tmp_p
         assert independent.ape.rmse == pytest.approx(ate[key], rel=1e-9)
 
 
-def test_compare_replaces_an_earlier_output_as_a_whole(tmp_path, small):
-    data, _ = small
+def test_compare_replaces_an_earlier_output_as_a_whole(tmp_path, tiny):
+    data, _ = tiny
     out = tmp_path / "cmp"
     assert main(["compare", str(data / "sequence.npz"), "--out", str(out), "--quiet", *EKF]) == 0
     (out / "slam" / "stale.txt").write_text("from an older run")
@@ -117,8 +117,8 @@ def test_compare_replaces_an_earlier_output_as_a_whole(tmp_path, small):
     assert json.loads((out / "comparison.json").read_text())["injected_noise"]["pixel_noise_px"] == 1.0
 
 
-def test_compare_interrupted_while_writing_leaves_nothing(tmp_path, small, monkeypatch, capsys):
-    data, _ = small
+def test_compare_interrupted_while_writing_leaves_nothing(tmp_path, tiny, monkeypatch, capsys):
+    data, _ = tiny
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
@@ -222,8 +222,8 @@ def test_compare_auto_checks_first_records_and_applies_the_suggestions(tmp_path,
 # ----------------------------------------------------------------------------- vislam run --gt
 
 
-def test_run_with_ground_truth_writes_metrics_and_prints_ate(tmp_path, long, capsys):
-    data, drive = long
+def test_run_with_ground_truth_writes_metrics_and_prints_ate(tmp_path, small, capsys):
+    data, drive = small
     out = tmp_path / "run"
     # the simulator's groundtruth.kitti holds left-camera poses (KITTI convention): the default converts them
     assert main(["run", str(data / "sequence.npz"), "--out", str(out), *NOISE,
@@ -235,7 +235,7 @@ def test_run_with_ground_truth_writes_metrics_and_prints_ate(tmp_path, long, cap
     ev = summary["evaluation"]
     for key in ("ape_rmse_m", "kitti_t_pct", "kitti_r_deg_per_100m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg"):
         assert key in ev
-    assert ev["n_frames_compared"] == 300 and ev["ground_truth"]["frame"] == "cam"
+    assert ev["n_frames_compared"] == 120 and ev["ground_truth"]["frame"] == "cam"
     assert ev["ground_truth"]["frame_requested"] == "auto"
     assert ev["ground_truth"]["cam_T_imu_source"] == "calibration.cam_T_imu of this run (the transform the filter used)"
     assert f"IMU {ev['ape_rmse_m']:.3f} m" in printed and f"camera {ev['cam_ape_rmse_m']:.3f} m" in printed

@@ -37,7 +37,7 @@ from conftest import REPO_ROOT, SHARED_DATA
 PAGES = ["README.md", *sorted(str(p.relative_to(REPO_ROOT)) for p in (REPO_ROOT / "docs").rglob("*.md"))]
 EXAMPLES = sorted((REPO_ROOT / "examples").glob("*.py"))
 FENCE = re.compile(r"^```([^\n`]*)\n(.*?)^```[ \t]*$", re.M | re.S)
-CI_TEST_COMMAND = 'python3 -m venv .venv && . .venv/bin/activate && pip install -e ".[test]" && python -m pytest -q'
+CI_TEST_COMMAND = 'python3 -m venv .venv && . .venv/bin/activate && pip install -e ".[test]" && python -m pytest -q -n auto --dist loadfile'
 KNOWN_TAGS = {"bash", "python", "yaml", "text", "shared", "slow", "setup", "toml", "console"}
 
 
@@ -185,6 +185,8 @@ def _check_results_table(summary_path: Path) -> None:
 def test_readme_keeps_the_two_set_up_commands():
     setup = [code.strip() for info, code in fenced_blocks(REPO_ROOT / "README.md") if info[:2] == ["bash", "setup"]]
     assert CI_TEST_COMMAND in setup  # .ci/run depends on it
+    test_command = CI_TEST_COMMAND.rsplit(" && ", 1)[1]
+    assert test_command in (REPO_ROOT / ".ci" / "run").read_text(encoding="utf-8").splitlines()  # and runs it
     assert any(c.startswith("python3 -m venv .venv") and "vislam demo" in c for c in setup)
 
 

@@ -391,11 +391,14 @@ def test_drift_test_rejects_mostly_moving_landmarks(traffic_drive):
 def test_robust_preset_limits_the_damage_of_traffic():
     from vislam.core.options import ROBUST_PRESET
 
-    d = simulate_drive(SimulationOptions(seed=0, moving_fraction=0.1, outlier_fraction=0.02, **NOISY_IMU))
+    d = simulate_drive(SimulationOptions(seed=0, n_frames=300, moving_fraction=0.1, outlier_fraction=0.02,
+                                         **NOISY_IMU))
     plain = estimators.run(d.sequence, "slam", FilterOptions(**NOISY_IMU))
     robust = estimators.run(d.sequence, "slam", FilterOptions(**NOISY_IMU, **ROBUST_PRESET))
     a_plain, a_robust = ate(plain.world_T_imu, d.world_T_imu), ate(robust.world_T_imu, d.world_T_imu)
-    # measured: 3.11 m with gating alone, 1.36 m with the robust preset
+    # measured on this 300-frame drive (30 s): 0.48 m with gating alone, 0.22 m with the
+    # robust preset (0.46x; seeds 1 and 2: 0.38x, 0.68x); the default 600 frames gave
+    # 3.11 m against 1.36 m (0.44x)
     assert a_robust < 0.7 * a_plain, (a_robust, a_plain)
 
 

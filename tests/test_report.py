@@ -1,4 +1,6 @@
-"""``vislam report`` on a tiny data folder laid out like the shared data."""
+"""``vislam report`` on a tiny data folder laid out like the shared data: the command
+(on its default local Dask cluster, in a subprocess) and the library in this process
+without Dask, which must write the same report."""
 
 from __future__ import annotations
 
@@ -12,12 +14,18 @@ import pytest
 from vislam.cli import main
 from vislam.core.lie import se3_inverse
 from vislam.core.simulate import SimulationOptions, simulate_drive
+from vislam.tools.cluster import SequentialEngine
 from vislam.tools.dataset_io import save_sequence
-from vislam.tools.report import ReportSettings, generate_report
+from vislam.tools.report import NoiseLevel, ReportSettings, generate_report
 from vislam.tools.trajectory_io import write_kitti
 
-N_FRAMES = 120
-SMALL = ["--sim-frames", "100", "--noise-levels", "0.3:0.006"]
+N_FRAMES = 90  # 116 m: KITTI t needs 100 m segments
+SIM_FRAMES = 30
+SMALL = ["--sim-frames", str(SIM_FRAMES), "--noise-levels", "0.3:0.006"]
+#: SMALL as the library's settings.
+SMALL_SETTINGS = ReportSettings(noise_levels=(NoiseLevel(0.3, 0.006),), simulation_frames=SIM_FRAMES)
+#: What may differ between two runs of the same report: the time it took.
+TIMING_KEYS = ("_seconds", "real_time_factor", "frame_ms_median", "frame_ms_p95")
 
 
 def vislam(*args, timeout=600):
@@ -47,6 +55,24 @@ def report(data_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("report") / "out"
     proc = vislam("report", "--data", data_dir, "--out", out, "--quiet", *SMALL)
     return out, proc
+
+
+@pytest.fixture(scope="module")
+def sequential(data_dir, tmp_path_factory):
+    """The same report by the library, in this process without Dask, and its log lines."""
+    lines = []
+    result = generate_report(data_dir, tmp_path_factory.mktemp("sequential") / "out", SMALL_SETTINGS,
+                             log=lines.append, engine=SequentialEngine())
+    return result, lines
+
+
+def without_timing(value):
+    """A JSON value without its timing entries (keys ending in TIMING_KEYS)."""
+    if isinstance(value, dict):
+        return {k: without_timing(v) for k, v in value.items() if not k.endswith(TIMING_KEYS)}
+    if isinstance(value, list):
+        return [without_timing(v) for v in value]
+    return value
 
 
 def referenced_figures(markdown: str) -> list[str]:
@@ -128,19 +154,47 @@ def test_report_progress_lines_on_stderr(data_dir, tmp_path, capsys):
     md = (out / "report.md").read_text()
     assert "section skipped" in md
     assert not table_rows(md, "noise") and not table_rows(md, "moving")
+    assert [r[2] for r in table_rows(md, "datasets")] == ["separately", "SLAM"] * 2  # --no-smoother
 
 
-def test_library_returns_the_structured_result(data_dir, tmp_path):
-    lines = []
-    result = generate_report(data_dir, tmp_path / "r", ReportSettings(noise_levels=(), simulation_frames=0,
-                                                                       smoother=False), log=lines.append)
+def test_library_returns_the_structured_result(sequential):
+    result, lines = sequential
+    out = result.out_dir
     assert result.markdown_path.is_file() and result.html_path.is_file()
-    assert len(lines) == 4 and result.seconds > 0
-    assert [r.method for r in result.rows] == ["separately", "SLAM"] * 2
-    assert all((tmp_path / "r" / f).is_file() for f in result.figures)
-    gt_rows = [r for r in result.rows if "0100" in r.dataset]
+    assert result.seconds > 0
+    assert len(lines) >= 4 and [re.match(r"\[(\d+)/(\d+)\] ", line).groups() for line in lines] == [
+        (str(i), str(len(lines))) for i in range(1, len(lines) + 1)]
+    datasets = [r for r in result.rows if r.section == "datasets"]
+    assert [r.method for r in datasets] == ["separately", "SLAM", "smoother", "refined"] * 2
+    assert len(result.rows) == 2 * 4 + 2 * 2 * 2 + 2 * 5  # datasets, noise (2 sparse x told or not x 2), moving
+    assert all((out / f).is_file() for f in result.figures)
+    gt_rows = [r for r in datasets if "0100" in r.dataset]
     assert gt_rows and all(r.ate_m is not None and r.kitti_t_pct is not None for r in gt_rows)
     assert all(r.ate_m is None for r in result.rows if "0101" in r.dataset)
+
+
+def test_report_on_the_cluster_equals_the_sequential_one(report, sequential):
+    """The command's runs on its local cluster (worker processes) and the library's in this
+    process: the same files, the same estimates and metrics, the same tables but for time."""
+    out, proc = report
+    assert proc.returncode == 0, proc.stderr
+    result, _ = sequential
+    seq = result.out_dir
+    files = sorted(p.relative_to(out).as_posix() for p in out.rglob("*"))
+    assert files == sorted(p.relative_to(seq).as_posix() for p in seq.rglob("*"))
+    exact = [f for f in files if f.rsplit("/", 1)[-1] in ("trajectory.tum", "trajectory.kitti", "landmarks.ply",
+                                                          "landmarks.npz", "metrics.json")]
+    runs = [f.rsplit("/", 1)[0] for f in files if f.endswith("/summary.json")]
+    assert len(runs) == len(result.rows) and all(f"{run}/trajectory.tum" in exact for run in runs)
+    for f in exact:
+        assert (out / f).read_bytes() == (seq / f).read_bytes(), f
+    for f in (f for f in files if f.endswith(("comparison.json", "summary.json"))):
+        a, b = (json.loads((root / f).read_text()) for root in (out, seq))
+        assert without_timing(a) == without_timing(b), f
+    md, seq_md = (out / "report.md").read_text(), result.markdown_path.read_text()
+    for section in ("datasets", "noise", "moving"):
+        timed = len(table_rows(md, section)[0]) - 2  # the last two columns: filter time and RTF
+        assert [r[:timed] for r in table_rows(md, section)] == [r[:timed] for r in table_rows(seq_md, section)]
 
 
 def test_nothing_usable_is_a_clear_error(tmp_path, capsys):

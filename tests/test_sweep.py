@@ -1,6 +1,7 @@
 """``vislam sweep`` and the Dask engine: a small sweep of simulated drives on a local
 cluster the tests start and stop, against the same cells run in this process; resuming;
-failed cells; SPEC errors; and ``vislam report``'s parallel path against its sequential one."""
+failed cells; SPEC errors. (``vislam report`` on its cluster against its sequential run:
+tests/test_report.py.)"""
 
 from __future__ import annotations
 
@@ -205,30 +206,3 @@ def test_unreachable_scheduler_is_a_one_line_error(monkeypatch):
         with open_engine("tcp://127.0.0.1:9"):
             pass
     assert "\n" not in str(info.value)
-
-
-@pytest.mark.slow
-def test_report_parallel_equals_sequential(data, cluster, tmp_path):
-    from vislam.tools.report import NoiseLevel, ReportSettings, generate_report
-
-    folder = tmp_path / "data"
-    (folder / "sparse").mkdir(parents=True)
-    (folder / "sparse" / "0100.npz").symlink_to(data / "b.npz")
-    (folder / "groundtruth").mkdir()
-    (folder / "groundtruth" / "0100.txt").symlink_to(data / "b.txt")
-    # every kind of task: comparisons without and with injected noise, simulated drives and their runs
-    settings = ReportSettings(noise_levels=(NoiseLevel(0.3, 0.006),), simulation_frames=20)
-    seq = generate_report(folder, tmp_path / "seq", settings, engine=SequentialEngine())
-    par = generate_report(folder, tmp_path / "par", settings, engine=cluster)
-    timing = {"filter_seconds", "real_time_factor", "frame_ms_median"}
-
-    def table(result):
-        return [{k: v for k, v in r.to_dict().items() if k not in timing} for r in result.rows]
-
-    # datasets: separately, SLAM, smoother, refined smoother; noise: 2 methods x (told,
-    # not told); simulated: 2 scenes x 5 runs
-    assert len(seq.rows) == 1 * 4 + 2 * 2 + 2 * 5
-    assert table(par) == table(seq)
-    assert any(r.ate_m is not None for r in par.rows)
-    assert sorted(p.relative_to(tmp_path / "par").as_posix() for p in (tmp_path / "par").rglob("*")) == \
-        sorted(p.relative_to(tmp_path / "seq").as_posix() for p in (tmp_path / "seq").rglob("*"))
