@@ -53,9 +53,12 @@ from vislam.core.noise import NoiseSpec, inject_noise
 from vislam.core.options import FilterOptions
 from vislam.tools.dataset_io import load_sequence
 from vislam.core.rigs import swapped_translation
-from vislam.core.lie import se3_inverse, se3_log
+from vislam.core.lie import se3_inverse
 from vislam.tools.evaluation import evaluate
 from vislam.tools.trajectory_io import read_trajectory
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from velocity_truth import true_twists  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -82,23 +85,17 @@ def main(argv=None) -> int:
     sparse = load_sequence(data / "sparse" / "0027.npz")
     gt_cam = read_trajectory(data / "groundtruth" / "0027.txt", "kitti").world_T_body
     extra = json.loads(args.options)
+    C_pub = np.array(dense.cam_T_imu)  # the published calibration: the files store imu_T_cam's translation
+    C_pub[:3, 3] = swapped_translation(dense.cam_T_imu)
     shift = np.array([float(x) for x in args.lever_arm_shift.split(",")])
     if args.lever_arm == "corrected" or shift.any():
-        C = np.array(dense.cam_T_imu)
-        if args.lever_arm == "corrected":
-            C[:3, 3] = swapped_translation(dense.cam_T_imu)
+        C = (C_pub if args.lever_arm == "corrected" else np.array(dense.cam_T_imu)).copy()
         C[:3, 3] += shift
         extra["cam_T_imu"] = C.tolist()
     depths = [float(x) for x in args.depths.split(",")]
     base_v, base_w = sparse.linear_velocity_in_imu_mps, sparse.angular_velocity_in_imu_radps
     if args.draw_velocities == "truth":
-        C_pub = np.array(dense.cam_T_imu)
-        C_pub[:3, 3] = swapped_translation(dense.cam_T_imu)
-        world_T_imu = gt_cam @ C_pub
-        n_gt = min(len(world_T_imu), sparse.n_frames)
-        rel = se3_log(se3_inverse(world_T_imu[:n_gt - 1]) @ world_T_imu[1:n_gt])
-        twist = np.zeros((sparse.n_frames, 6))  # sample k+1 describes k -> k+1
-        twist[1:n_gt] = rel / np.diff(sparse.timestamps_s[:n_gt])[:, None]
+        twist, _ = true_twists(sparse, gt_cam @ C_pub)  # sample k+1 describes k -> k+1
         base_v, base_w = twist[:, :3], twist[:, 3:]
     gyro_bias = np.array([float(x) for x in args.draw_gyro_bias.split(",")])
     cases = [] if args.no_file else [("as shared", dense)]
