@@ -1319,6 +1319,17 @@ def _gross_mismatches(true_pixels: np.ndarray, opts: SimulationOptions, rng: np.
     return out
 
 
+def _stall_positions(frames: np.ndarray, ids: np.ndarray, period: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The observations ordered by (id, frame): ``order`` (N,), and along it whether each
+    starts a track (consecutive frames of one id) and whether it is a stall (a track's
+    observation at a re-detection frame, a multiple of ``period``, after its first)."""
+    order = np.lexsort((frames, ids))  # by id, then frame
+    f, i = frames[order], ids[order]
+    new_track = np.ones(order.size, dtype=bool)
+    new_track[1:] = (i[1:] != i[:-1]) | (f[1:] != f[:-1] + 1)
+    return order, new_track, ~new_track & (f % period == 0)
+
+
 def _stall_tracks(frames: np.ndarray, ids: np.ndarray, period: int, columns: tuple) -> tuple:
     """Stalled tracks (``SimulationOptions.stall_period``), applied to in-sync observations.
 
@@ -1336,11 +1347,8 @@ def _stall_tracks(frames: np.ndarray, ids: np.ndarray, period: int, columns: tup
     n = frames.shape[0]
     if n == 0:
         return columns
-    order = np.lexsort((frames, ids))  # by id, then frame
-    f, i = frames[order], ids[order]
-    new_track = np.ones(n, dtype=bool)
-    new_track[1:] = (i[1:] != i[:-1]) | (f[1:] != f[:-1] + 1)
-    stall = (~new_track & (f % period == 0)).astype(np.int64)
+    order, new_track, stall = _stall_positions(frames, ids, period)
+    stall = stall.astype(np.int64)
     running = np.cumsum(stall)
     track = np.cumsum(new_track) - 1
     lag = running - (running - stall)[new_track][track]
@@ -1366,11 +1374,7 @@ def _restart_tracks(frames: np.ndarray, ids: np.ndarray, period: int, pixels: np
     pixels of a restarted observation are Q's. The (landmark, frame) pairs are unchanged."""
     pixels, true_pixels = pixels.copy(), true_pixels.copy()
     noise = pixels - true_pixels
-    order = np.lexsort((frames, ids))
-    f, i = frames[order], ids[order]
-    new_track = np.ones(order.size, dtype=bool)
-    new_track[1:] = (i[1:] != i[:-1]) | (f[1:] != f[:-1] + 1)
-    stall = ~new_track & (f % period == 0)
+    order, new_track, stall = _stall_positions(frames, ids, period)
     track_end = np.append(np.flatnonzero(new_track)[1:], order.size)  # one past each track's last position
     end_of = track_end[np.cumsum(new_track) - 1]
     for s in np.flatnonzero(stall):
@@ -1378,7 +1382,7 @@ def _restart_tracks(frames: np.ndarray, ids: np.ndarray, period: int, pixels: np
         z = pixels[prev]
         if is_outlier[prev] or z[0] - z[2] <= 0:
             continue
-        world_T_cam = se3_inverse(cam_T_world[f[s]])
+        world_T_cam = se3_inverse(cam_T_world[frames[order[s]]])
         q = camera.triangulate(z)
         p_world = world_T_cam[:3, :3] @ q + world_T_cam[:3, 3]
         pixels[order[s]] = true_pixels[order[s]] = z
