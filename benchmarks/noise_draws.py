@@ -31,6 +31,8 @@ forward). The lever-arm comparison (docs/data.md, "The dense files and the EKF")
         --no-file --draw-gyro-bias 0.0041,0.0049,0.0049      # with and without --options skip
     PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm corrected --outlier-seeds '' \
         --no-file --draws 0,1,2 --draw-velocities truth --options '{"repeated_observations": "skip"}'
+    PYTHONPATH=src python benchmarks/noise_draws.py --depths 200 --lever-arm corrected --outlier-seeds '' \
+        --draws '' --heading --options '{"repeated_observations": "skip"}'   # where the heading goes wrong
 
 The measurements behind ``FilterOptions.max_depth_m``'s default::
 
@@ -61,6 +63,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from velocity_truth import true_twists  # noqa: E402
 
 
+def heading_error(world_T_cam: np.ndarray, gt_world_T_cam: np.ndarray) -> str:
+    """The estimate's heading error about the first camera's vertical (its y axis; both
+    trajectories start at the same pose): at the end, and summed over the frames where the
+    ground truth turns (> 0.01 rad per frame) and where it does not, degrees."""
+    est = gt_world_T_cam[0] @ se3_inverse(world_T_cam[0]) @ world_T_cam  # start at the same pose
+
+    def yaw(T):
+        return np.unwrap(np.arctan2(T[:, 0, 2], T[:, 2, 2]))
+
+    gt_yaw = yaw(gt_world_T_cam)
+    err = np.degrees(yaw(est) - gt_yaw)
+    d_err, turning = np.gradient(err), np.abs(np.gradient(gt_yaw)) > 0.01
+    return (f"heading {err[-1]:+.2f} deg (turns {d_err[turning].sum():+.2f}, straights {d_err[~turning].sum():+.2f}; "
+            f"turned {np.degrees(np.abs(np.diff(gt_yaw)).sum()):.0f} deg)")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
@@ -79,6 +97,9 @@ def main(argv=None) -> int:
     parser.add_argument("--draw-gyro-bias", default="0,0,0", metavar="X,Y,Z",
                         help="a constant added to the draws' angular rates (rad/s, IMU frame)")
     parser.add_argument("--no-file", action="store_true", help="leave out the file as shared")
+    parser.add_argument("--heading", action="store_true",
+                        help="also print each run's heading error: at the end, and accumulated in turns and on "
+                             "straights (the ground truth's yaw rate above / below 0.01 rad per frame)")
     args = parser.parse_args(argv)
     data = Path(args.data)
     dense = load_sequence(data / "dense" / "0027.npz")
@@ -117,6 +138,8 @@ def main(argv=None) -> int:
             ev = evaluate(cam[:m], gt_cam[:m])
             results[d].append((ev.ape.rmse, ev.kitti.t_pct))
             line.append(f"{d:g} m: {ev.ape.rmse:.2f} m {ev.kitti.t_pct:.2f} %")
+            if args.heading:
+                line.append(heading_error(cam[:m], gt_cam[:m]))
         print(f"{name:12s} " + " | ".join(line), flush=True)
     for d in depths:
         a = np.array(results[d])
