@@ -3,7 +3,8 @@
 Nothing heavy is imported at module level: the command-line interface, numpy, scipy
 and matplotlib are imported inside :func:`entry_point`, under the same handler for
 Ctrl-C as the command itself. An interrupt at any moment — during the start-up imports
-included — ends the process with one line on stderr and exit code 130, never a
+included, also one that lands in a callback of the import system and cannot propagate
+from there (:func:`_unraisable_interrupts_reach_main`) — ends the process with one line on stderr and exit code 130, never a
 traceback; outputs are written all at once or not at all (the commands stage them).
 """
 
@@ -41,10 +42,32 @@ def _is_interrupt(exc: BaseException) -> bool:
     return False
 
 
+def _unraisable_interrupts_reach_main(default=sys.unraisablehook):
+    """A ``sys.unraisablehook`` for Ctrl-C: a KeyboardInterrupt raised where Python cannot
+    propagate it (a weakref callback of the import system's module locks, when the
+    interrupt lands during the start-up imports) would be printed as "Exception ignored"
+    with a traceback and then lost. This hook prints nothing and raises it again in the
+    main thread (``_thread.interrupt_main``), where :func:`entry_point` reports it in one
+    line; every other unraisable exception goes to ``default``. The interrupt is raised
+    from a helper thread a moment later, once this hook has returned: raised inside the
+    hook it would be unraisable again."""
+    import _thread
+    import threading
+
+    def hook(unraisable) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            threading.Timer(0.01, _thread.interrupt_main).start()
+            return
+        default(unraisable)
+
+    return hook
+
+
 def entry_point() -> None:
     """Run the command line and exit with its code."""
     command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
     name = f"vislam {command}" if command else "vislam"
+    sys.unraisablehook = _unraisable_interrupts_reach_main(sys.unraisablehook)
     try:
         from vislam.cli import main
 
