@@ -212,7 +212,8 @@ def load_known_poses(path, sequence) -> np.ndarray:
         dt = np.abs(traj.timestamps_s - sequence.timestamps_s)
         i = int(np.argmax(dt))
         if dt[i] > POSE_TIME_TOLERANCE_S:
-            raise ConfigError(f"{path}: pose {i} has timestamp {traj.timestamps_s[i]!r} but frame {i} of the dataset "
-                              f"is at {sequence.timestamps_s[i]!r} (difference {dt[i]:.3g} s > "
+            raise ConfigError(f"{path}: pose {i} has timestamp {float(traj.timestamps_s[i])!r} "
+                              f"but frame {i} of the dataset "
+                              f"is at {float(sequence.timestamps_s[i])!r} (difference {dt[i]:.3g} s > "
                               f"{POSE_TIME_TOLERANCE_S:g} s)")
     return traj.world_T_body

@@ -401,13 +401,14 @@ def _read_timestamps(reader: _NpzReader, key: str) -> np.ndarray:
         i = _first_index(bad) + 1
         raise reader.error(
             key,
-            f"is not strictly increasing at index {i} ({t[i]!r} after {t[i - 1]!r}); "
+            f"is not strictly increasing at index {i} ({float(t[i])!r} after {float(t[i - 1])!r}); "
             f"expected strictly increasing timestamps",
         )
     with np.errstate(over="ignore"):
         span = t[-1] - t[0]
     if not np.isfinite(span):
-        raise reader.error(key, f"spans {t[0]!r} to {t[-1]!r}, which overflows; expected timestamps in seconds")
+        raise reader.error(key, f"spans {float(t[0])!r} to {float(t[-1])!r}, which overflows; "
+                                "expected timestamps in seconds")
     return t
 
 
@@ -440,14 +441,16 @@ def _read_K(reader: _NpzReader, key: str) -> np.ndarray:
         raise reader.error(key, f"has non-finite entries {K.tolist()}; expected finite intrinsics")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise reader.error(
-            key, f"has focal lengths K[0,0] = {K[0, 0]!r}, K[1,1] = {K[1, 1]!r}; expected both positive (pixels)"
+            key, f"has focal lengths K[0,0] = {float(K[0, 0])!r}, K[1,1] = {float(K[1, 1])!r}; "
+            "expected both positive (pixels)"
         )
     if not np.array_equal(K[2], [0.0, 0.0, 1.0]):
         raise reader.error(key, f"has last row {K[2].tolist()}; expected [0, 0, 1]")
     if K[0, 1] != 0.0 or K[1, 0] != 0.0:
         raise reader.error(
             key,
-            f"has K[0,1] = {K[0, 1]!r}, K[1,0] = {K[1, 0]!r}; expected [[fsu, 0, cu], [0, fsv, cv], [0, 0, 1]] "
+            f"has K[0,1] = {float(K[0, 1])!r}, K[1,0] = {float(K[1, 0])!r}; "
+            "expected [[fsu, 0, cu], [0, fsv, cv], [0, 0, 1]] "
             f"(the stereo model has no skew)",
         )
     return K
@@ -571,7 +574,7 @@ def _stream_c(fp, decode, M: int, T: int, fail_entry) -> StereoObservations:
                             return f"{_COORDS[c]} is {a[i]}"
                         if seen[i]:
                             return f"{_COORDS[c]} is -1 but uL is not"
-                        return f"uL is -1 but {_COORDS[c]} is {a[i]!r}"
+                        return f"uL is -1 but {_COORDS[c]} is {float(a[i])!r}"
 
                     note(np.flatnonzero(bad), pos, a, describe)
             if first is None:
@@ -641,7 +644,7 @@ def _read_small(reader: _NpzReader):
     with np.errstate(over="ignore"):
         fsu_b = K[0, 0] * baseline
     if not np.isfinite(fsu_b):
-        raise reader.error(keys["b"], f"is {baseline!r}: fsu * b overflows; expected a baseline in metres")
+        raise reader.error(keys["b"], f"is {float(baseline)!r}: fsu * b overflows; expected a baseline in metres")
     transform = _read_transform(reader, keys["transform"])
     return keys, convention, extra, timestamps, linear, angular, K, baseline, transform
 

@@ -43,6 +43,7 @@ import copy
 import json
 import logging
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -1000,7 +1001,7 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
     from matplotlib.figure import Figure
 
     r = result
-    fig = Figure(figsize=(9.5, 6), dpi=120, layout="constrained")
+    fig = Figure(figsize=(9.5, 6), dpi=120)
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.subplots(2, 1)
     fig.suptitle(title or "Trajectory error against ground truth", fontsize=13)
@@ -1008,7 +1009,7 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
     d = r.distance_along_gt_m
     if np.all(np.isnan(r.aligned_position_error_m)):
         ax1.plot(d, r.unaligned_position_error_m, color="tab:blue", lw=1.2, label="not aligned")
-        ax1.set_title("APE translation, not aligned (alignment impossible)", fontsize=10)
+        ax1.set_title("APE translation, not aligned (alignment impossible)", fontsize=10, loc="left")
         ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     elif r.camera is not None:  # camera ground truth: both frames
         c = r.camera
@@ -1016,12 +1017,14 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
                  label=f"left camera (RMSE {c.ape.rmse:.3f} m)")
         ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.0, alpha=0.8,
                  label=f"IMU, ground truth converted with cam_T_imu (RMSE {r.ape.rmse:.3f} m)")
-        ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10)
+        ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10,
+                      loc="left")
         ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     else:
         ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.2, label="per frame")
         ax1.axhline(r.ape.rmse, color="tab:red", ls="--", lw=1.0, label=f"RMSE {r.ape.rmse:.3f} m")
-        ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10)
+        ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10,
+                      loc="left")
         ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     ax1.set_xlabel("distance travelled along ground truth (m)")
     ax1.set_ylabel("position error (m)")
@@ -1044,19 +1047,25 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
                else "")
         ax2.set_title(
             f"KITTI odometry error{f' ({frame})' if frame else ''}: {k.t_pct:.2f} % translation, "
-            f"{k.r_deg_per_100m:.3f} deg/100 m rotation ({k.n_segments} segments){cam}", fontsize=10)
+            f"{k.r_deg_per_100m:.3f} deg/100 m rotation ({k.n_segments} segments){cam}", fontsize=10, loc="left")
         ax2.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
         ax2.set_ylim(bottom=0)
     else:
         ax2.text(0.5, 0.5, f"ground truth shorter than {lengths.min():g} m:\nno KITTI segments",
                  ha="center", va="center", transform=ax2.transAxes, fontsize=11, color="0.3")
-        ax2.set_title("KITTI odometry error", fontsize=10)
+        ax2.set_title("KITTI odometry error", fontsize=10, loc="left")
     ax2.set_xticks(lengths)
     ax2.set_xlim(lengths.min() - 50, lengths.max() + 50)
     ax2.set_xlabel("segment length (m)")
     ax2.set_ylabel("translational error (%)")
     ax2.grid(True, alpha=0.3)
 
+    # one layout pass, then none when saving (a layout engine left on the figure makes
+    # savefig draw it twice; constrained layout costs several draws)
+    with warnings.catch_warnings():  # "not compatible with tight_layout": the legends outside the axes
+        warnings.simplefilter("ignore", UserWarning)
+        fig.tight_layout(h_pad=1.5)
+    fig.set_layout_engine(None)
     try:
         with atomic_path(path, suffix=".png") as tmp:
             fig.savefig(tmp, format="png", dpi=120)

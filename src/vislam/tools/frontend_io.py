@@ -191,7 +191,7 @@ def _check_times(t: np.ndarray, path: Path) -> None:
         raise DatasetError(f"{path}: has a non-finite time stamp; expected finite times")
     if t.size > 1 and np.any(np.diff(t) <= 0):
         k = int(np.argmax(np.diff(t) <= 0)) + 1
-        raise DatasetError(f"{path}: time stamp {k} ({t[k]!r}) is not after the previous one; expected strictly "
+        raise DatasetError(f"{path}: time stamp {k} ({float(t[k])!r}) is not after the previous one; expected strictly "
                            f"increasing times")
 
 

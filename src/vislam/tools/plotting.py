@@ -129,7 +129,7 @@ def _fit_equal_aspect(fig, ax, limits) -> tuple[tuple[float, float], tuple[float
         fig.tight_layout()
     # the layout is final (the view below is fitted to it): no second layout pass, and
     # no extra draw, when the figure is saved
-    fig.set_layout_engine("none")
+    fig.set_layout_engine(None)  # None, not "none": that keeps a placeholder engine, for which savefig draws twice
     box = ax.get_position()
     fig_w, fig_h = fig.get_size_inches()
     box_ratio = (box.width * fig_w) / (box.height * fig_h)

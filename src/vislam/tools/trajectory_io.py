@@ -291,7 +291,7 @@ def _tum_from_table(path: Path, table: np.ndarray, lines: np.ndarray) -> tuple[n
     if np.any(steps <= 0):
         i = int(np.argmax(steps <= 0)) + 1
         raise GroundTruthError(
-            f"{path}: line {lines[i]}: timestamp {ts[i]!r} does not increase (previous {ts[i - 1]!r}); "
+            f"{path}: line {lines[i]}: timestamp {float(ts[i])!r} does not increase (previous {float(ts[i - 1])!r}); "
             "TUM timestamps must be strictly increasing"
         )
     poses = np.zeros((table.shape[0], 4, 4))
