@@ -378,3 +378,18 @@ def test_compare_keeps_slam_when_the_smoother_fails(tmp_path, monkeypatch, capsy
     assert content["methods"]["slam"]["partial"] is False and content["methods"]["slam"]["frames_processed"] == 20
     assert content["methods"]["smoother"]["partial"] is True
     assert (out / "slam" / "trajectory.tum").is_file() and (out / "smoother" / "trajectory.tum").is_file()
+
+
+def test_gtsam_failures_read_as_the_smoothers_variables_on_one_line():
+    """GTSAM's message spans lines, names a raw 64-bit key and points to its docs: the
+    failure a user reads names the pose (or landmark) and fits on one line."""
+    from vislam.core.smoother import _one_line
+
+    gtsam_text = ("\nIndeterminate linear system detected while working near variable\n8646911284551352471 "
+                  "(Symbol: x151).\n\nThrown when a linear system is ill-posed.  See the GTSAM Doxygen "
+                  "documentation for gtsam::IndeterminateSystemException.\n")
+    line = _one_line(RuntimeError(gtsam_text))
+    assert line == ("Indeterminate linear system detected while working near variable x151 (the pose of frame "
+                    "151). Thrown when a linear system is ill-posed")
+    assert "landmark 7" in _one_line(RuntimeError("near variable 7782220156096217095 (Symbol: l7)."))
+    assert _one_line(ValueError()) == "ValueError"

@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import time
 
 import numpy as np
@@ -111,9 +112,18 @@ def _gtsam():
     return gtsam
 
 
+_GTSAM_KEY = re.compile(r"variable \d+ \(Symbol: ([xl])(\d+)\)")
+
+
 def _one_line(exc: BaseException) -> str:
-    """An exception's message on one line (GTSAM's span several, with blank lines)."""
-    return " ".join(str(exc).split()) or type(exc).__name__
+    """An exception's message on one line (GTSAM's span several, with blank lines), with
+    GTSAM's keys named as the smoother's variables (``x151`` the pose of frame 151,
+    ``l7`` landmark key 7) and without its pointers to its documentation."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    text = _GTSAM_KEY.sub(lambda m: f"variable {m[1]}{m[2]} ({'the pose of frame' if m[1] == 'x' else 'landmark'} "
+                          f"{m[2]})", text)
+    cut = text.find(" See the GTSAM")
+    return (text[:cut] if cut > 0 else text).rstrip(". ")
 
 
 def _rigid(T: np.ndarray) -> np.ndarray:
