@@ -524,3 +524,36 @@ def test_timestamps_in_milliseconds_are_named_and_the_rest_of_the_check_still_wo
     slow = check_sequence(seq.replace(timestamps_s=seq.timestamps_s * 40.0), FAST)
     assert _severity(slow, "timestamps") == "ERROR"
     assert "timestamp_scale" not in slow.suggested
+
+
+def test_two_ids_on_one_point_are_found_counted_and_named(clean_check):
+    """Landmarks whose four pixels copy another landmark's in the same frame (a second
+    track started on a followed corner) are one point counted twice: a WARN naming the
+    first copy; the clean drive has none, and a shared pixel in only one image is no copy."""
+    drive, result = clean_check
+    assert _severity(result, "duplicate-observations") == "OK"
+    assert result.estimates["observations"]["duplicated"]["observations"] == 0
+    seq = drive.sequence
+    obs = seq.observations
+    from vislam.core.sequence import StereoObservations
+
+    copied = np.isin(obs.landmark_ids, [3, 8])  # every observation of landmarks 3 and 8, under ids M, M + 1
+    half = obs.landmark_ids == 5  # landmark 5's left pixels, with another right pixel: not a copy
+    new_ids = np.r_[obs.landmark_ids, np.where(obs.landmark_ids[copied] == 3, obs.n_landmarks, obs.n_landmarks + 1),
+                    np.full(half.sum(), obs.n_landmarks + 2)]
+    shifted = obs.pixels[half].copy()
+    shifted[:, 2] -= 3.0
+    pixels = np.r_[obs.pixels, obs.pixels[copied], shifted]
+    frames = np.r_[obs.frame_index, obs.frame_index[copied], obs.frame_index[half]]
+    order = np.lexsort((new_ids, frames))
+    offsets = np.r_[0, np.cumsum(np.bincount(frames, minlength=seq.n_frames))]
+    dup = StereoObservations(offsets, new_ids[order], pixels[order], obs.n_landmarks + 3)
+    mask = dup.duplicate_mask()
+    assert mask.sum() == copied.sum() and set(dup.landmark_ids[mask]) == {obs.n_landmarks, obs.n_landmarks + 1}
+    found = check_sequence(seq.replace(observations=dup), FAST)
+    counts = found.estimates["observations"]["duplicated"]
+    assert counts["observations"] == copied.sum() and counts["landmarks"] == 2
+    first = int(obs.frame_index[copied][0])
+    assert counts["frames"] == np.unique(obs.frame_index[copied]).size and counts["example"]["frame"] == first
+    finding = found.finding("duplicate-observations")
+    assert finding.severity == "WARN" and f"frame {first}" in finding.message and "count twice" in finding.message

@@ -100,7 +100,8 @@ logger = logging.getLogger(__name__)
 SEVERITIES = ("OK", "WARN", "ERROR")
 #: Stable codes of the findings, in the order they are reported.
 FINDING_CODES = ("timestamps", "imu-camera-rotation", "imu-camera-translation", "velocity-association",
-                 "velocity-scale", "time-offset", "imu-bias", "noise", "pixel-noise", "reprojection", "repeated-observations", "disparity")
+                 "velocity-scale", "time-offset", "imu-bias", "noise", "pixel-noise", "reprojection", "repeated-observations", "disparity",
+                 "duplicate-observations")
 
 
 @dataclass(frozen=True)
@@ -1018,10 +1019,27 @@ def _analyse_observations(run: _Check) -> Analysis:
     obs = run.sequence.observations
     disparity = obs.pixels[:, 0] - obs.pixels[:, 2]
     repeated, evidence = obs.repeat_evidence(run.sequence.repeat_motion())
+    duplicated = obs.duplicate_mask()
     return Analysis({"observations": {
         "total": obs.n_observations, "repeated": int(np.count_nonzero(repeated)),
         "repeated_share": float(np.mean(repeated)) if obs.n_observations else 0.0, "repeat_evidence": evidence,
-        "non_positive_disparity": int(np.count_nonzero(disparity <= 0))}})
+        "non_positive_disparity": int(np.count_nonzero(disparity <= 0)),
+        "duplicated": _duplicate_counts(obs, duplicated)}})
+
+
+def _duplicate_counts(obs, duplicated: np.ndarray) -> dict:
+    """Observations that copy another landmark's pixels in the same frame: how many, in
+    how many frames, how many landmarks, and the first (frame, id kept, id copying)."""
+    n = int(np.count_nonzero(duplicated))
+    out = {"observations": n, "frames": int(np.unique(obs.frame_index[duplicated]).size),
+           "landmarks": int(np.unique(obs.landmark_ids[duplicated]).size), "example": None}
+    if n:
+        i = int(np.flatnonzero(duplicated)[0])
+        t = int(obs.frame_index[i])
+        ids, pix = obs.frame(t)
+        first = int(ids[np.flatnonzero(np.all(pix == obs.pixels[i], axis=1))[0]])
+        out["example"] = {"frame": t, "landmark": first, "copy": int(obs.landmark_ids[i])}
+    return out
 
 
 def _analyse_imu_noise(run: _Check) -> Analysis:
@@ -1444,7 +1462,20 @@ def _analyse_tracker_artifacts(run: _Check) -> Analysis:
                    if rep_share > 0 else "nothing to do")),
         Finding("disparity", "OK",
                 f"{npd} observations with non-positive disparity (uL <= uR): "
-                + ("they cannot be triangulated; the filter skips them; nothing to do" if npd else "nothing to do"))])
+                + ("they cannot be triangulated; the filter skips them; nothing to do" if npd else "nothing to do")),
+        _duplicate_finding(o["duplicated"])])
+
+
+def _duplicate_finding(d: dict) -> Finding:
+    if not d["observations"]:
+        return Finding("duplicate-observations", "OK",
+                       "no two landmarks share all four pixels in a frame; nothing to do")
+    e = d["example"]
+    return Finding("duplicate-observations", "WARN",
+                   f"{d['observations']} observations of {d['landmarks']} landmarks, in {d['frames']} frames, have "
+                   f"the same four pixels as another landmark's in the same frame (first: frame {e['frame']}, "
+                   f"landmark {e['copy']} copies landmark {e['landmark']}): two ids on one point, which the filters "
+                   f"count twice, so they trust the estimate more than the images allow; keep one id per point")
 
 
 #: The reprojection analyses (with 30+ track predictions), in order: each reads what the

@@ -97,6 +97,23 @@ class StereoObservations:
         """(T,) number of observations in each frame."""
         return np.diff(self.frame_offsets)
 
+    def duplicate_mask(self) -> np.ndarray:
+        """(N,) bool: the observation has the same four pixels as an observation of a
+        lower landmark id in the same frame — two ids on one point (a tracker that started
+        a second track on a corner it already follows, or a file with copied columns).
+        The filters would count that point twice."""
+        n = self.n_observations
+        out = np.zeros(n, dtype=bool)
+        if n < 2:
+            return out
+        p = self.pixels
+        # by frame, then pixels, then id (ids increase within a frame: the first of a group is the lowest)
+        order = np.lexsort((np.arange(n), p[:, 3], p[:, 2], p[:, 1], p[:, 0], self.frame_index))
+        same = (self.frame_index[order[1:]] == self.frame_index[order[:-1]]) & np.all(
+            p[order[1:]] == p[order[:-1]], axis=1)
+        out[order[1:][same]] = True
+        return out
+
     @cached_property
     def observed_mask(self) -> np.ndarray:
         """(M, T) bool: True where landmark j is observed at frame t."""
