@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -417,3 +419,28 @@ def test_euroc_velocity_csv_is_interpolated_at_the_image_times(tmp_path):
     csv.write_text("t,vx,vy,vz,wx,wy,wz\n" + f"{t[0]:.9f},0,0,0,0,0,0\n{t[10]:.9f},0,0,0,0,0,0\n")
     with pytest.raises(DatasetError, match=r"v.csv: covers .*; expected it to cover the image times"):
         open_stereo_source(EUROC, velocities=csv)
+
+
+def test_a_folder_without_texture_is_tracked_with_a_warning_that_run_repeats(tmp_path):
+    """Blank images give no corners: the tracks file is written (it is what the images
+    hold), with a warning that names the likely causes, in the statistics, on `vislam
+    track`'s stderr and among `vislam run`'s warnings; textured pairs give none."""
+    from vislam.tools.frontend_io import track_source
+
+    _, stats = track_source(open_stereo_source(_plain_folder(tmp_path / "textured")))
+    assert stats["tracks_per_frame_output"]["mean"] >= 10 and stats["warnings"] == []
+    blank = _plain_folder(tmp_path / "blank")
+    for image in list((blank / "left").glob("*.png")) + list((blank / "right").glob("*.png")):
+        cv2.imwrite(str(image), np.full((200, 320), 128, np.uint8))
+    _, stats = track_source(open_stereo_source(blank))
+    assert stats["tracks"] == 0 and len(stats["warnings"]) == 1 and "blank" in stats["warnings"][0]
+    track = subprocess.run([sys.executable, "-m", "vislam", "track", str(blank), "--out", str(tmp_path / "t.npz")],
+                           capture_output=True, text=True, timeout=300)
+    assert track.returncode == 0 and (tmp_path / "t.npz").is_file()
+    assert track.stderr.count("vislam track: warning: only 0.0 tracked landmarks per frame") == 1, track.stderr
+    out = tmp_path / "run"
+    run = subprocess.run([sys.executable, "-m", "vislam", "run", str(blank), "--out", str(out), "--quiet"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    warnings = json.loads((out / "summary.json").read_text())["warnings"]
+    assert warnings[0].startswith("only 0.0 tracked landmarks per frame")

@@ -193,7 +193,8 @@ def run(args) -> int:
                                        on_frame=record_frame(recorder, sequence))
             finally:
                 close()
-            extra["warnings"] = run_warnings(result)
+            extra["warnings"] = ((tracking or {}).get("statistics", {}).get("warnings", [])
+                                 + run_warnings(result))
             if "timing" in result.extra:  # smoother: its own timings and those of refine
                 extra["timing"] = result.extra["timing"]
             gt_poses = None

@@ -78,6 +78,8 @@ def run(args) -> int:
     paths = write_tracks(sequence, stats, out)
     if not args.quiet:
         print(format_stats(stats, paths), flush=True)
+        for warning in stats["warnings"]:
+            print(f"vislam track: warning: {warning}", file=sys.stderr)
         if source.velocities is None:
             print(f"vislam track: warning: {out}: no velocities (NaN): {source.velocity_note}; the filter commands "
                   f"will refuse this file", file=sys.stderr)

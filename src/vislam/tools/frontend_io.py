@@ -213,9 +213,15 @@ def _floats(text: str, path: Path, key: str, n: int) -> np.ndarray:
         values = np.array([float(v) for v in text.split()])
     except ValueError:
         raise DatasetError(f"{path}: key '{key}' is not a list of numbers; expected {n} numbers") from None
-    if values.size != n or not np.all(np.isfinite(values)):
-        raise DatasetError(f"{path}: key '{key}' has {values.size} values; expected {n} finite numbers")
+    if values.size != n:
+        raise DatasetError(f"{path}: key '{key}' has {values.size} values; expected {_numbers(n)}")
+    if not np.all(np.isfinite(values)):
+        raise DatasetError(f"{path}: key '{key}' has a non-finite value ({text.strip()[:60]}); expected {_numbers(n)}")
     return values
+
+
+def _numbers(n: int) -> str:
+    return "1 finite number" if n == 1 else f"{n} finite numbers"
 
 
 def _kitti_keys(path: Path) -> dict[str, str]:
@@ -389,7 +395,7 @@ def _yaml_numbers(doc, path: Path, key: str, n: int) -> np.ndarray:
     except (TypeError, ValueError):
         arr = None
     if value is None or arr is None or arr.size != n or not np.all(np.isfinite(arr)):
-        raise DatasetError(f"{path}: key '{key}' is {value!r:.60}; expected {n} finite numbers")
+        raise DatasetError(f"{path}: key '{key}' is {value!r:.60}; expected {_numbers(n)}")
     return arr
 
 
@@ -473,9 +479,12 @@ def read_velocity_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
             if not rows and i == 0:
                 continue  # header
             raise DatasetError(f"{path}: line {i + 1} ({line[:40]!r}) is not 7 numbers; expected t,vx,vy,vz,wx,wy,wz")
-        if len(values) != 7 or not all(math.isfinite(v) for v in values):
+        if len(values) != 7:
             raise DatasetError(f"{path}: line {i + 1} has {len(values)} values; expected 7 finite numbers "
                                f"t,vx,vy,vz,wx,wy,wz")
+        if not all(math.isfinite(v) for v in values):
+            raise DatasetError(f"{path}: line {i + 1} ({line[:60]!r}) has a non-finite value; expected 7 finite "
+                               f"numbers t,vx,vy,vz,wx,wy,wz")
         rows.append(values)
     if not rows:
         raise DatasetError(f"{path}: holds no rows; expected t,vx,vy,vz,wx,wy,wz lines")
@@ -659,7 +668,26 @@ def track_source(source: StereoSource, options=None, progress=None):
     stats["source"] = str(source.root)
     stats["velocities"] = "given" if source.velocities is not None else f"missing (NaN): {source.velocity_note}"
     stats["options"] = options.to_dict()
+    stats["warnings"] = tracking_warnings(stats)
+    for warning in stats["warnings"]:
+        logger.info("%s: %s", source.root, warning)  # the commands print it as a warning
     return sequence, stats
+
+
+#: Fewer tracked landmarks per frame on average than this is a warning: a stereo pair of a
+#: textured scene gives tens to hundreds; the SLAM update needs a few every frame.
+MIN_MEAN_TRACKS_PER_FRAME = 10.0
+
+
+def tracking_warnings(stats: dict) -> list[str]:
+    """One line per thing a user must know about the tracks before filtering them."""
+    tpf = stats["tracks_per_frame_output"]
+    if stats["frames"] and tpf["mean"] < MIN_MEAN_TRACKS_PER_FRAME:
+        return [f"only {tpf['mean']:.1f} tracked landmarks per frame on average (min {tpf['min']}, max "
+                f"{tpf['max']}; expected at least {MIN_MEAN_TRACKS_PER_FRAME:g}): are the images blank, dark or "
+                f"blurred, or not a rectified stereo pair (a point on the same row in both)? The filters will be "
+                f"close to dead reckoning"]
+    return []
 
 
 def _count_stats(counts: np.ndarray) -> dict:
