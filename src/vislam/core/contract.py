@@ -191,6 +191,8 @@ class FilterDiagnostics:
         drift_log: smoother: None, or a list (set it to ``[]``) that receives ``(id, n,
             statistic / median, speed, frame)`` per drift test.
         timings: smoother: seconds spent in the window updates and the marginals.
+        restarts: smoother: frames after a time gap longer than its window, where it
+            started again from the dead-reckoned pose.
     """
 
     failed: str | None = None
@@ -200,6 +202,7 @@ class FilterDiagnostics:
     update_counts: list = field(default_factory=list)
     drift_log: list | None = None
     timings: dict = field(default_factory=dict)
+    restarts: list = field(default_factory=list)
 
 
 class StepwiseFilter:

@@ -281,8 +281,9 @@ def _gap_warnings(result: "RunResult") -> list[str]:
         if over.size:
             out.append(f"{over.size} time gap(s) longer than the smoother's window ({window:g} s), between frames "
                        f"{_frames(t, over[:3])}{', ...' if over.size > 3 else ''}: everything before a gap left the "
-                       f"window, the tracks across it restart as new landmarks, and the motion over it is one "
-                       f"velocity sample held (dead reckoning)")
+                       f"window, the tracks across it restart as new landmarks, the motion over it is one "
+                       f"velocity sample held (dead reckoning), and the smoother starts again from that pose, "
+                       f"held fixed as the first one is")
         dt = np.where(dt > window, 0.0, dt)  # named above
     over = np.flatnonzero(dt > limit) + 1
     if over.size:

@@ -473,14 +473,24 @@ class SmootherFilter(StepwiseFilter):
             pose = self._current @ step.matrix()
             cov = tau * tau * self._W_gtsam + 1e-12 * np.eye(6)
             noise = g.noiseModel.Gaussian.Covariance(cov)
-            if self.options.velocity_frame == "level":
+            if tau > self._window:
+                # a time gap longer than the window: everything before it leaves the window
+                # now, and the held velocity sample over it is a guess; the smoother starts
+                # again from the dead-reckoned pose, held as the first one is (an odometry
+                # factor over kilometres couples the heading to the position so strongly that
+                # GTSAM found the system indeterminate: seen from gaps of ~400 s)
+                f = g.PriorFactorPose3(X, g.Pose3(pose), self._pose_prior)
+                self._prior_factors.append(f)
+                self.diagnostics.restarts.append(t)
+            elif self.options.velocity_frame == "level":
                 # the step's displacement back in the level frame: τ v_level plus the turn's
                 # curvature (roll and pitch enter only this second-order term)
                 d_level = body_to_level(imu_T_world, step.translation())
                 f = _level_odometry_factor(g, self._X(t - 1), X, step.rotation().matrix(), d_level, noise)
             else:
                 f = g.BetweenFactorPose3(self._X(t - 1), X, step, noise)
-            self._odometry_factors.append(f)
+            if tau <= self._window:
+                self._odometry_factors.append((t, f))
             self._time += tau
         self._pending_odometry = None
         new.graph.add(f)
@@ -933,8 +943,9 @@ def refine(smoother: SmootherFilter) -> tuple[np.ndarray, dict]:
     for key, p in smoother._final_lm.items():
         values.insert(smoother._L(key), p)
     base_graph = g.NonlinearFactorGraph()
-    for f in smoother._odometry_factors[: max(n - 1, 0)]:
-        base_graph.add(f)
+    for t, f in smoother._odometry_factors:
+        if t < n:  # (a failed frame's factor is not in the trajectory)
+            base_graph.add(f)
     for f in smoother._prior_factors:
         base_graph.add(f)
     robust = _kernel(g, opts.refine_kernel, opts.refine_kernel_scale, smoother._stereo_base)
