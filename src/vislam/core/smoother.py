@@ -91,6 +91,9 @@ __all__ = ["SmootherFilter", "run_smoother", "refine", "to_ekf_covariance"]
 #: Fewest landmarks tested in a frame for the drift test's median (else no test).
 _MIN_DRIFT_POPULATION = 10
 
+#: GTSAM's Symbol keys: the character in the top 8 bits, the index below (gtsam.symbol).
+_X_BASE, _L_BASE = ord("x") << 56, ord("l") << 56
+
 #: (v, ω) <-> (ω, v): the same permutation both ways.
 _PERM = np.array([3, 4, 5, 0, 1, 2])
 
@@ -155,53 +158,86 @@ def level_odometry_error(world_T_i: np.ndarray, world_T_j: np.ndarray, delta_R: 
     With ``jacobians``: also (H_i, H_j), the 6x6 derivatives with respect to GTSAM's
     right perturbations (ω, v) of each pose (R → R exp(ω^), t → t + R v), tested
     against finite differences."""
-    # scalar-heavy on purpose: GTSAM calls it ~30 times a frame (every odometry factor of
-    # the window is relinearized), so numpy's per-call overhead is most of its cost
-    R_i, t_i = world_T_i[:3, :3], world_T_i[:3, 3]
-    R_j, t_j = world_T_j[:3, :3], world_T_j[:3, 3]
-    R_ij = R_i.T @ R_j
+    out = _level_odometry(np.asarray(world_T_i, dtype=np.float64).tolist(),
+                          np.asarray(world_T_j, dtype=np.float64).tolist(),
+                          np.asarray(delta_R, dtype=np.float64).tolist(),
+                          np.asarray(d_level, dtype=np.float64).tolist(), jacobians)
+    return out if jacobians else out[0]
+
+
+def _level_odometry(Ti: list, Tj: list, dR: list, dl: list, jacobians: bool):
+    """:func:`level_odometry_error` on nested lists (the rows of the 4x4 poses and of ΔR;
+    d_level): (e, H_i, H_j), the Jacobians None without ``jacobians``. Scalar arithmetic
+    on Python floats on purpose: GTSAM calls it back ~30 times a frame (the iSAM2 batch
+    step relinearizes every odometry factor of the window), where numpy's per-call
+    overhead on 3x3 blocks cost 3x more than the arithmetic."""
+    (a00, a01, a02, ti0), (a10, a11, a12, ti1), (a20, a21, a22, ti2) = Ti[0], Ti[1], Ti[2]
+    (b00, b01, b02, tj0), (b10, b11, b12, tj1), (b20, b21, b22, tj2) = Tj[0], Tj[1], Tj[2]
+    # R_ij = R_iᵀ R_j
+    q00, q01, q02 = a00 * b00 + a10 * b10 + a20 * b20, a00 * b01 + a10 * b11 + a20 * b21, a00 * b02 + a10 * b12 + a20 * b22
+    q10, q11, q12 = a01 * b00 + a11 * b10 + a21 * b20, a01 * b01 + a11 * b11 + a21 * b21, a01 * b02 + a11 * b12 + a21 * b22
+    q20, q21, q22 = a02 * b00 + a12 * b10 + a22 * b20, a02 * b01 + a12 * b11 + a22 * b21, a02 * b02 + a12 * b12 + a22 * b22
+    (d00, d01, d02), (d10, d11, d12), (d20, d21, d22) = dR
     Rot3 = _gtsam().Rot3  # its Logmap and LogmapDerivative: 100x faster than scipy's for one matrix
-    e_r = Rot3.Logmap(Rot3(delta_R.T @ R_ij))
-    c0, c1 = float(R_i[0, 0]), float(R_i[1, 0])  # the heading ψ: x axis of the body in the world
-    n2 = c0 * c0 + c1 * c1
+    e_r = Rot3.Logmap(Rot3(  # ΔRᵀ R_ij
+        d00 * q00 + d10 * q10 + d20 * q20, d00 * q01 + d10 * q11 + d20 * q21, d00 * q02 + d10 * q12 + d20 * q22,
+        d01 * q00 + d11 * q10 + d21 * q20, d01 * q01 + d11 * q11 + d21 * q21, d01 * q02 + d11 * q12 + d21 * q22,
+        d02 * q00 + d12 * q10 + d22 * q20, d02 * q01 + d12 * q11 + d22 * q21, d02 * q02 + d12 * q12 + d22 * q22))
+    n2 = a00 * a00 + a10 * a10  # the heading ψ: x axis of the body in the world
     n = math.sqrt(n2)
-    c, s = c0 / n, c1 / n  # cos ψ, sin ψ
-    Rz_T = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz(ψ)ᵀ
-    d = t_j - t_i
-    e = np.empty(6)
-    e[:3] = e_r
-    e[3:] = Rz_T @ d - d_level
+    c, s = a00 / n, a10 / n  # cos ψ, sin ψ
+    x, y, z = tj0 - ti0, tj1 - ti1, tj2 - ti2
+    er0, er1, er2 = e_r.tolist()
+    e = np.array([er0, er1, er2, c * x + s * y - dl[0], -s * x + c * y - dl[1], z - dl[2]])  # Rz(ψ)ᵀ d − d_level
     if not jacobians:
-        return e
-    Jr_inv = Rot3.LogmapDerivative(e_r)  # Jr⁻¹(φ), the derivative of Log
-    H_i = np.zeros((6, 6))
-    H_j = np.zeros((6, 6))
-    H_i[:3, :3] = -Jr_inv @ R_ij.T  # ΔRᵀR_iᵀR_j → (…) exp(−R_ijᵀ ω_i)
-    H_j[:3, :3] = Jr_inv  # (…) exp(ω_j)
+        return e, None, None
+    (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = Rot3.LogmapDerivative(e_r).tolist()  # Jr⁻¹(φ)
     # ψ under R_i exp(ω^): the first column moves by R_i (ω × e_x) = −R_i [e_x]× ω, so
     # d(c0, c1)/dω = [[0, −R02, R01], [0, −R12, R11]] and dψ = (c0 dc1 − c1 dc0) / (c0² + c1²)
-    dpsi_y = (c1 * R_i[0, 2] - c0 * R_i[1, 2]) / n2
-    dpsi_z = (c0 * R_i[1, 1] - c1 * R_i[0, 1]) / n2
-    g = np.array([-s * d[0] + c * d[1], -c * d[0] - s * d[1]])  # (d Rz(ψ)ᵀ / dψ) d, its z row is 0
-    H_i[3:5, 1] = g * dpsi_y  # ω_y
-    H_i[3:5, 2] = g * dpsi_z  # ω_z
-    H_i[3:, 3:] = -Rz_T @ R_i  # t_i + R_i v_i
-    H_j[3:, 3:] = Rz_T @ R_j  # t_j + R_j v_j
+    dpsi_y = (a10 * a02 - a00 * a12) / n2
+    dpsi_z = (a00 * a11 - a10 * a01) / n2
+    g0, g1 = -s * x + c * y, -c * x - s * y  # (d Rz(ψ)ᵀ / dψ) d, its z row is 0
+    H_i = np.array([  # ΔRᵀR_iᵀR_j → (…) exp(−R_ijᵀ ω_i): −Jr⁻¹ R_ijᵀ; t_i + R_i v_i: −Rz(ψ)ᵀ R_i
+        -(j00 * q00 + j01 * q01 + j02 * q02), -(j00 * q10 + j01 * q11 + j02 * q12), -(j00 * q20 + j01 * q21 + j02 * q22),
+        0.0, 0.0, 0.0,
+        -(j10 * q00 + j11 * q01 + j12 * q02), -(j10 * q10 + j11 * q11 + j12 * q12), -(j10 * q20 + j11 * q21 + j12 * q22),
+        0.0, 0.0, 0.0,
+        -(j20 * q00 + j21 * q01 + j22 * q02), -(j20 * q10 + j21 * q11 + j22 * q12), -(j20 * q20 + j21 * q21 + j22 * q22),
+        0.0, 0.0, 0.0,
+        0.0, g0 * dpsi_y, g0 * dpsi_z, -(c * a00 + s * a10), -(c * a01 + s * a11), -(c * a02 + s * a12),
+        0.0, g1 * dpsi_y, g1 * dpsi_z, s * a00 - c * a10, s * a01 - c * a11, s * a02 - c * a12,
+        0.0, 0.0, 0.0, -a20, -a21, -a22]).reshape(6, 6)
+    H_j = np.array([  # (…) exp(ω_j): Jr⁻¹; t_j + R_j v_j: Rz(ψ)ᵀ R_j
+        j00, j01, j02, 0.0, 0.0, 0.0,
+        j10, j11, j12, 0.0, 0.0, 0.0,
+        j20, j21, j22, 0.0, 0.0, 0.0,
+        0.0, 0.0, 0.0, c * b00 + s * b10, c * b01 + s * b11, c * b02 + s * b12,
+        0.0, 0.0, 0.0, c * b10 - s * b00, c * b11 - s * b01, c * b12 - s * b02,
+        0.0, 0.0, 0.0, b20, b21, b22]).reshape(6, 6)
     return e, H_i, H_j
 
 
 def _level_odometry_factor(g, key_i: int, key_j: int, delta_R: np.ndarray, d_level: np.ndarray, noise):
-    """A ``gtsam.CustomFactor`` of :func:`level_odometry_error`."""
+    """A ``gtsam.CustomFactor`` of :func:`level_odometry_error`. It keeps its last
+    linearization: the iSAM2 batch step relinearizes every factor of the window each
+    frame, and a third of the time neither pose has moved since (the relinearization
+    threshold), so the same error and Jacobians are handed back without recomputing them."""
+    dR, dl = delta_R.tolist(), d_level.tolist()
+    last: list = [None, None, None]  # rows of T_i, rows of T_j, (e, H_i, H_j)
 
     def error(_factor, values, H):
-        Ti = values.atPose3(key_i).matrix()
-        Tj = values.atPose3(key_j).matrix()
+        Ti = values.atPose3(key_i).matrix().tolist()
+        Tj = values.atPose3(key_j).matrix().tolist()
         if H is None:
-            return level_odometry_error(Ti, Tj, delta_R, d_level)
-        e, H_i, H_j = level_odometry_error(Ti, Tj, delta_R, d_level, jacobians=True)
-        H[0] = H_i
-        H[1] = H_j
-        return e
+            return _level_odometry(Ti, Tj, dR, dl, False)[0]
+        if Ti == last[0] and Tj == last[1]:
+            out = last[2]
+        else:
+            out = _level_odometry(Ti, Tj, dR, dl, True)
+            last[:] = Ti, Tj, out
+        H[0] = out[1]
+        H[1] = out[2]
+        return out[0]
 
     return g.CustomFactor(noise, [key_i, key_j], error)
 
@@ -300,7 +336,7 @@ class SmootherFilter(StepwiseFilter):
         # every factor of the drive, for refine
         self._odometry_factors: list = []
         self._prior_factors: list = []
-        self._stereo_factors: list = []  # GenericStereoFactor3D (base noise, no kernel)
+        self._stereo_factors: list = []  # GenericStereoFactor3D (the smoother's noise model)
         self._stereo_removed: set[int] = set()
         self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
         self._unchecked: tuple = (-1, [])  # (frame, observations, factor indices) not yet checked
@@ -373,10 +409,10 @@ class SmootherFilter(StepwiseFilter):
 
     # --- keys -------------------------------------------------------------------------
     def _X(self, k: int) -> int:
-        return self._g.symbol("x", k)
+        return _X_BASE + k  # gtsam.symbol("x", k), without a call into GTSAM (~300 keys a frame)
 
     def _L(self, key: int) -> int:
-        return self._g.symbol("l", key)
+        return _L_BASE + key  # gtsam.symbol("l", key)
 
     # --- the frame --------------------------------------------------------------------
     def step(self, frame: Frame) -> FrameStats:
@@ -585,11 +621,12 @@ class SmootherFilter(StepwiseFilter):
             entry[2] = int(factor_index[entry[2]])
 
     def _stereo(self, pix: np.ndarray, k: int, key: int):
+        """The stereo factor of an observation (under the smoother's kernel; also kept,
+        in ``_stereo_factors``, for refine, which swaps the noise model)."""
         g = self._g
         meas = g.StereoPoint2(float(pix[0]), float(pix[2]), 0.5 * float(pix[1] + pix[3]))
-        f = g.GenericStereoFactor3D(meas, self._stereo_noise, self._X(k), self._L(key), self._K, self._body_P_sensor)
-        self._stereo_factors.append(g.GenericStereoFactor3D(meas, self._stereo_base, self._X(k), self._L(key), self._K,
-                                                            self._body_P_sensor))
+        f = g.GenericStereoFactor3D(meas, self._stereo_noise, _X_BASE + k, _L_BASE + key, self._K, self._body_P_sensor)
+        self._stereo_factors.append(f)
         return f
 
     def _check_outliers(self, t: int, added: list) -> None:
@@ -933,7 +970,7 @@ def refine(smoother: SmootherFilter) -> tuple[np.ndarray, dict]:
     def solve(factors, initial):
         graph = g.NonlinearFactorGraph(base_graph)
         for f in factors:
-            graph.add(f.cloneWithNewNoiseModel(robust) if opts.refine_kernel != "none" else f)
+            graph.add(f.cloneWithNewNoiseModel(robust))  # the smoother's factors carry its kernel
         params = g.LevenbergMarquardtParams()
         params.setMaxIterations(opts.refine_max_iterations)
         try:
