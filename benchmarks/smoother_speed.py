@@ -17,6 +17,13 @@ shared data has one (sparse 0020/0027, dense 0027: ATE after SE(3) alignment, in
 IMU frame, as ``vislam run --gt``). After ``--repeat`` rounds it prints the best
 (minimum) of each time, the ratio of the second tree to the first, each tree's ATE and
 the largest position difference between the two trees' trajectories.
+
+CPU time on a machine shared by several busy processes still moves by 20-30 % between
+rounds (2 virtual CPUs: a busy neighbour slows this one down). ``--instructions A,B``
+counts instructions instead, which load does not change: for each tree and file it runs
+the smoother over the first A and the first B frames under ``valgrind --tool=callgrind``
+(about 50x slower) and prints the instructions per frame of frames A..B (the difference
+of the two counts, so start-up and imports cancel out), and their ratio.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -70,6 +78,44 @@ def child(data: str, gt: str | None, save: str) -> int:
     return 0
 
 
+def child_frames(data: str, frames: int) -> int:
+    """The smoother over the first ``frames`` frames (for instruction counts)."""
+    from vislam.core.options import FilterOptions
+    from vislam.core.smoother import SmootherFilter
+    from vislam.tools.dataset_io import load_sequence
+
+    seq = load_sequence(data)
+    kw = dict(velocity_noise_mps=0.5, angular_noise_radps=0.05) if Path(data).parent.name == "dense" else {}
+    filt = SmootherFilter(seq.calibration, FilterOptions(**kw))
+    for frame in seq.frames(0, frames):
+        filt.step(frame)
+    filt.finish()
+    return 0
+
+
+def count_instructions(src: str, data: Path, frames: int) -> int:
+    """Instructions (callgrind's total Ir) of a process running the smoother over ``frames`` frames."""
+    with tempfile.TemporaryDirectory() as tmp:
+        args = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={tmp}/cg.out", sys.executable,
+                str(Path(__file__).resolve()), "--child", str(data), "--frames", str(frames)]
+        env = dict(os.environ, PYTHONPATH=str(Path(src).resolve()))
+        done = subprocess.run(args, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    return int(re.search(r"Collected : (\d+)", done.stderr).group(1))
+
+
+def instructions(trees: list, files: list, data_dir: str, a: int, b: int) -> None:
+    per_frame = {}
+    for name in files:
+        data = Path(data_dir) / f"{name}.npz"
+        for tree in trees:
+            n_a, n_b = count_instructions(tree, data, a), count_instructions(tree, data, b)
+            per_frame[tree, name] = (n_b - n_a) / (b - a)
+            print(f"{tree[-32:]:32s} {name:12s} frames {a}..{b}: {per_frame[tree, name] / 1e6:8.2f} M instructions "
+                  f"per frame", flush=True)
+        if len(trees) == 2:
+            print(f"ratio second/first {name:12s} {per_frame[trees[1], name] / per_frame[trees[0], name]:.3f}")
+
+
 def time_run(src: str, data: Path, gt: Path | None, save: Path) -> dict:
     args = [sys.executable, str(Path(__file__).resolve()), "--child", str(data), "--save", str(save)]
     if gt is not None:
@@ -86,14 +132,23 @@ def main() -> int:
     ap.add_argument("--files", default=",".join(FILES))
     ap.add_argument("--repeat", type=int, default=3, help="rounds (default 3)")
     ap.add_argument("--json", help="also write the results to this file")
+    ap.add_argument("--instructions", metavar="A,B", help="count instructions per frame of frames A..B instead "
+                    "(valgrind)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--frames", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--gt", help=argparse.SUPPRESS)
     ap.add_argument("--save", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
+        if args.frames is not None:
+            return child_frames(args.child, args.frames)
         return child(args.child, args.gt, args.save)
     if not args.tree:
         ap.error("give --tree (once or twice)")
+    if args.instructions:
+        a, b = (int(x) for x in args.instructions.split(","))
+        instructions(args.tree, args.files.split(","), args.data, a, b)
+        return 0
     import numpy as np
 
     files = args.files.split(",")

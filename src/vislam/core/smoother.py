@@ -302,6 +302,10 @@ class SmootherFilter(StepwiseFilter):
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(opts.smoother_relinearize_threshold)
         params.relinearizeSkip = 1
+        # removed and marginalized factors' slots are reused: without it iSAM2's factor array
+        # grows by every factor of the drive (~50 000 slots on a dense file), and its batch
+        # step, taken every frame here, walks and copies them all (dense 0034: ~25 % of a frame)
+        params.findUnusedFactorSlots = True
         self._window = float(opts.smoother_window_s)
         self._smoother = gtsam.IncrementalFixedLagSmoother(self._window, params)
         # "split": a repeat ends its track and starts a new one, in sync (no remap)
@@ -337,6 +341,7 @@ class SmootherFilter(StepwiseFilter):
         self._odometry_factors: list = []
         self._prior_factors: list = []
         self._stereo_factors: list = []  # GenericStereoFactor3D (the smoother's noise model)
+        self._stereo_pix = np.zeros((1024, 4))  # their pixels [uL, vL, uR, vR], row = index in _stereo_factors
         self._stereo_removed: set[int] = set()
         self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
         self._unchecked: tuple = (-1, [])  # (frame, observations, factor indices) not yet checked
@@ -626,6 +631,10 @@ class SmootherFilter(StepwiseFilter):
         g = self._g
         meas = g.StereoPoint2(float(pix[0]), float(pix[2]), 0.5 * float(pix[1] + pix[3]))
         f = g.GenericStereoFactor3D(meas, self._stereo_noise, _X_BASE + k, _L_BASE + key, self._K, self._body_P_sensor)
+        i = len(self._stereo_factors)
+        if i == self._stereo_pix.shape[0]:
+            self._stereo_pix = np.concatenate([self._stereo_pix, np.zeros_like(self._stereo_pix)])
+        self._stereo_pix[i] = pix
         self._stereo_factors.append(f)
         return f
 
@@ -653,7 +662,7 @@ class SmootherFilter(StepwiseFilter):
             self._fresh.add(k)
         poses = np.array([self._pose_value[k] for k in uniq.tolist()])
         p = np.array([self._smoother.calculateEstimatePoint3(self._L(a[0].key)) for a in added]).reshape(n_added, 3)
-        err = self._whitened_norms(poses[inv], p, np.array([a[2] for a in added]))
+        err = self._whitened_norms(poses[inv], p, self._stereo_pix[np.array([a[3][1] for a in added], dtype=np.int64)])
         limit = opts.smoother_outlier_sigma if opts.smoother_outlier_sigma > 0 else np.inf
         bad = err > limit
         remove = []
@@ -707,15 +716,18 @@ class SmootherFilter(StepwiseFilter):
         n = len(todo)
         owner = np.array([j for j, (_, obs) in enumerate(todo) for _ in obs], dtype=np.int64)  # sorted
         frames = np.array([e[0] for _, obs in todo for e in obs], dtype=np.int64)
-        pix = np.array([e[3] for _, obs in todo for e in obs])
+        pix = self._stereo_pix[np.array([e[1] for _, obs in todo for e in obs], dtype=np.int64)]
         uniq, inv = np.unique(frames, return_inverse=True)
         for k in uniq.tolist():
             if k not in self._fresh:
                 self._pose_value[k] = self._smoother.calculateEstimatePose3(self._X(k)).matrix()
                 self._fresh.add(k)
-        world_T_imu = np.array([self._pose_value[k] for k in uniq.tolist()])[inv]
-        p = np.array([points[lm.key] for lm, _ in todo]).reshape(n, 3)
-        r, front = self._whitened_residuals(world_T_imu, p[owner], pix)
+        # camera from world of each observation: inverted once per pose, not per observation
+        cam_T_world = self._cam_T_world(np.array([self._pose_value[k] for k in uniq.tolist()]))
+        ts = np.array([self._pose_stamp[k] for k in uniq.tolist()])[inv]
+        cam_T_world = cam_T_world[inv]
+        p = np.array([points[lm.key] for lm, _ in todo]).reshape(n, 3)[owner]
+        r, front = self._camera_residuals(cam_T_world, p, pix)
         r = np.where(front[:, None], r, 0.0)
         w = front.astype(np.float64)
         starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
@@ -732,7 +744,7 @@ class SmootherFilter(StepwiseFilter):
         moving = valid & (stat > self._drift_gate * max(typical, 1e-12))
         speed = np.zeros(n)
         if np.any(moving):
-            speed = self._apparent_speed(world_T_imu, p[owner], frames, r, front, starts)
+            speed = self._apparent_speed(cam_T_world, p, ts, r, front, starts)
             moving &= speed > self.options.smoother_drift_min_speed_mps
         drift_log = self.diagnostics.drift_log
         if drift_log is not None:
@@ -765,19 +777,17 @@ class SmootherFilter(StepwiseFilter):
             del self._tracks[lm.id]
             self._rejected_ids.add(lm.id)
 
-    def _apparent_speed(self, world_T_imu, p, frames, r, front, starts) -> np.ndarray:
+    def _apparent_speed(self, cam_T_world, p, ts, r, front, starts) -> np.ndarray:
         """(n,) speed (m/s) of n landmarks taken as points moving at constant velocity:
         one Gauss-Newton step from their static estimate for (δp, v) with
-        p(t_i) = p + δp + v (t_i − t̄), over observations from poses ``world_T_imu``
-        (N, 4, 4) of points ``p`` (N, 3) with whitened residuals ``r`` (N, 3), grouped
-        by landmark (``starts``: first row of each)."""
-        cam_T_world = self._model.cam_T_imu @ se3_inverse(world_T_imu)
+        p(t_i) = p + δp + v (t_i − t̄), over observations at times ``ts`` (N,) from
+        camera poses ``cam_T_world`` (N, 4, 4) of points ``p`` (N, 3) with whitened
+        residuals ``r`` (N, 3), grouped by landmark (``starts``: first row of each)."""
         R = cam_T_world[:, :3, :3]
         q = np.einsum("kij,kj->ki", R, p) + cam_T_world[:, :3, 3]
         q[:, 2] = np.where(front, q[:, 2], 1.0)
         J = self._whitened_point_jacobians(R, q) * front[:, None, None]
         w = front.astype(np.float64)
-        ts = np.array([self._pose_stamp[k] for k in frames.tolist()])
         cnt = np.add.reduceat(w, starts)
         tmean = np.add.reduceat(w * ts, starts) / np.maximum(cnt, 1)
         owner = np.repeat(np.arange(starts.size), np.diff(np.r_[starts, ts.size]))
@@ -831,11 +841,18 @@ class SmootherFilter(StepwiseFilter):
         r, front = self._whitened_residuals(world_T_imu, p, pix)
         return np.where(front, np.sqrt(np.einsum("ki,ki->k", r, r)), np.inf)
 
+    def _cam_T_world(self, world_T_imu: np.ndarray) -> np.ndarray:
+        """(n, 4, 4) left camera from world of IMU poses world_T_imu (n, 4, 4)."""
+        return self._model.cam_T_imu @ se3_inverse(world_T_imu)
+
     def _whitened_residuals(self, world_T_imu: np.ndarray, p: np.ndarray, pix: np.ndarray):
         """((n, 3) whitened (uL, uR, v) errors, prediction − measurement, of observations
         ``pix`` (n, 4) of landmarks ``p`` (n, 3) from poses (n, 4, 4); (n,) in front of
         the camera)."""
-        cam_T_world = self._model.cam_T_imu @ se3_inverse(world_T_imu)
+        return self._camera_residuals(self._cam_T_world(world_T_imu), p, pix)
+
+    def _camera_residuals(self, cam_T_world: np.ndarray, p: np.ndarray, pix: np.ndarray):
+        """:meth:`_whitened_residuals` from camera poses ``cam_T_world`` (n, 4, 4)."""
         q = np.einsum("kij,kj->ki", cam_T_world[:, :3, :3], p) + cam_T_world[:, :3, 3]
         cam = self.calibration.camera
         front = q[:, 2] > 1e-6
