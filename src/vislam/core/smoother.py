@@ -92,6 +92,9 @@ __all__ = ["SmootherFilter", "run_smoother", "refine", "to_ekf_covariance"]
 #: Fewest landmarks tested in a frame for the drift test's median (else no test).
 _MIN_DRIFT_POPULATION = 10
 
+#: GTSAM's Symbol keys: the character in the top 8 bits, the index below (gtsam.symbol).
+_X_BASE, _L_BASE = ord("x") << 56, ord("l") << 56
+
 #: (v, ω) <-> (ω, v): the same permutation both ways.
 _PERM = np.array([3, 4, 5, 0, 1, 2])
 
@@ -165,53 +168,86 @@ def level_odometry_error(world_T_i: np.ndarray, world_T_j: np.ndarray, delta_R: 
     With ``jacobians``: also (H_i, H_j), the 6x6 derivatives with respect to GTSAM's
     right perturbations (ω, v) of each pose (R → R exp(ω^), t → t + R v), tested
     against finite differences."""
-    # scalar-heavy on purpose: GTSAM calls it ~30 times a frame (every odometry factor of
-    # the window is relinearized), so numpy's per-call overhead is most of its cost
-    R_i, t_i = world_T_i[:3, :3], world_T_i[:3, 3]
-    R_j, t_j = world_T_j[:3, :3], world_T_j[:3, 3]
-    R_ij = R_i.T @ R_j
+    out = _level_odometry(np.asarray(world_T_i, dtype=np.float64).tolist(),
+                          np.asarray(world_T_j, dtype=np.float64).tolist(),
+                          np.asarray(delta_R, dtype=np.float64).tolist(),
+                          np.asarray(d_level, dtype=np.float64).tolist(), jacobians)
+    return out if jacobians else out[0]
+
+
+def _level_odometry(Ti: list, Tj: list, dR: list, dl: list, jacobians: bool):
+    """:func:`level_odometry_error` on nested lists (the rows of the 4x4 poses and of ΔR;
+    d_level): (e, H_i, H_j), the Jacobians None without ``jacobians``. Scalar arithmetic
+    on Python floats on purpose: GTSAM calls it back ~30 times a frame (the iSAM2 batch
+    step relinearizes every odometry factor of the window), where numpy's per-call
+    overhead on 3x3 blocks cost 3x more than the arithmetic."""
+    (a00, a01, a02, ti0), (a10, a11, a12, ti1), (a20, a21, a22, ti2) = Ti[0], Ti[1], Ti[2]
+    (b00, b01, b02, tj0), (b10, b11, b12, tj1), (b20, b21, b22, tj2) = Tj[0], Tj[1], Tj[2]
+    # R_ij = R_iᵀ R_j
+    q00, q01, q02 = a00 * b00 + a10 * b10 + a20 * b20, a00 * b01 + a10 * b11 + a20 * b21, a00 * b02 + a10 * b12 + a20 * b22
+    q10, q11, q12 = a01 * b00 + a11 * b10 + a21 * b20, a01 * b01 + a11 * b11 + a21 * b21, a01 * b02 + a11 * b12 + a21 * b22
+    q20, q21, q22 = a02 * b00 + a12 * b10 + a22 * b20, a02 * b01 + a12 * b11 + a22 * b21, a02 * b02 + a12 * b12 + a22 * b22
+    (d00, d01, d02), (d10, d11, d12), (d20, d21, d22) = dR
     Rot3 = _gtsam().Rot3  # its Logmap and LogmapDerivative: 100x faster than scipy's for one matrix
-    e_r = Rot3.Logmap(Rot3(delta_R.T @ R_ij))
-    c0, c1 = float(R_i[0, 0]), float(R_i[1, 0])  # the heading ψ: x axis of the body in the world
-    n2 = c0 * c0 + c1 * c1
+    e_r = Rot3.Logmap(Rot3(  # ΔRᵀ R_ij
+        d00 * q00 + d10 * q10 + d20 * q20, d00 * q01 + d10 * q11 + d20 * q21, d00 * q02 + d10 * q12 + d20 * q22,
+        d01 * q00 + d11 * q10 + d21 * q20, d01 * q01 + d11 * q11 + d21 * q21, d01 * q02 + d11 * q12 + d21 * q22,
+        d02 * q00 + d12 * q10 + d22 * q20, d02 * q01 + d12 * q11 + d22 * q21, d02 * q02 + d12 * q12 + d22 * q22))
+    n2 = a00 * a00 + a10 * a10  # the heading ψ: x axis of the body in the world
     n = math.sqrt(n2)
-    c, s = c0 / n, c1 / n  # cos ψ, sin ψ
-    Rz_T = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # Rz(ψ)ᵀ
-    d = t_j - t_i
-    e = np.empty(6)
-    e[:3] = e_r
-    e[3:] = Rz_T @ d - d_level
+    c, s = a00 / n, a10 / n  # cos ψ, sin ψ
+    x, y, z = tj0 - ti0, tj1 - ti1, tj2 - ti2
+    er0, er1, er2 = e_r.tolist()
+    e = np.array([er0, er1, er2, c * x + s * y - dl[0], -s * x + c * y - dl[1], z - dl[2]])  # Rz(ψ)ᵀ d − d_level
     if not jacobians:
-        return e
-    Jr_inv = Rot3.LogmapDerivative(e_r)  # Jr⁻¹(φ), the derivative of Log
-    H_i = np.zeros((6, 6))
-    H_j = np.zeros((6, 6))
-    H_i[:3, :3] = -Jr_inv @ R_ij.T  # ΔRᵀR_iᵀR_j → (…) exp(−R_ijᵀ ω_i)
-    H_j[:3, :3] = Jr_inv  # (…) exp(ω_j)
+        return e, None, None
+    (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = Rot3.LogmapDerivative(e_r).tolist()  # Jr⁻¹(φ)
     # ψ under R_i exp(ω^): the first column moves by R_i (ω × e_x) = −R_i [e_x]× ω, so
     # d(c0, c1)/dω = [[0, −R02, R01], [0, −R12, R11]] and dψ = (c0 dc1 − c1 dc0) / (c0² + c1²)
-    dpsi_y = (c1 * R_i[0, 2] - c0 * R_i[1, 2]) / n2
-    dpsi_z = (c0 * R_i[1, 1] - c1 * R_i[0, 1]) / n2
-    g = np.array([-s * d[0] + c * d[1], -c * d[0] - s * d[1]])  # (d Rz(ψ)ᵀ / dψ) d, its z row is 0
-    H_i[3:5, 1] = g * dpsi_y  # ω_y
-    H_i[3:5, 2] = g * dpsi_z  # ω_z
-    H_i[3:, 3:] = -Rz_T @ R_i  # t_i + R_i v_i
-    H_j[3:, 3:] = Rz_T @ R_j  # t_j + R_j v_j
+    dpsi_y = (a10 * a02 - a00 * a12) / n2
+    dpsi_z = (a00 * a11 - a10 * a01) / n2
+    g0, g1 = -s * x + c * y, -c * x - s * y  # (d Rz(ψ)ᵀ / dψ) d, its z row is 0
+    H_i = np.array([  # ΔRᵀR_iᵀR_j → (…) exp(−R_ijᵀ ω_i): −Jr⁻¹ R_ijᵀ; t_i + R_i v_i: −Rz(ψ)ᵀ R_i
+        -(j00 * q00 + j01 * q01 + j02 * q02), -(j00 * q10 + j01 * q11 + j02 * q12), -(j00 * q20 + j01 * q21 + j02 * q22),
+        0.0, 0.0, 0.0,
+        -(j10 * q00 + j11 * q01 + j12 * q02), -(j10 * q10 + j11 * q11 + j12 * q12), -(j10 * q20 + j11 * q21 + j12 * q22),
+        0.0, 0.0, 0.0,
+        -(j20 * q00 + j21 * q01 + j22 * q02), -(j20 * q10 + j21 * q11 + j22 * q12), -(j20 * q20 + j21 * q21 + j22 * q22),
+        0.0, 0.0, 0.0,
+        0.0, g0 * dpsi_y, g0 * dpsi_z, -(c * a00 + s * a10), -(c * a01 + s * a11), -(c * a02 + s * a12),
+        0.0, g1 * dpsi_y, g1 * dpsi_z, s * a00 - c * a10, s * a01 - c * a11, s * a02 - c * a12,
+        0.0, 0.0, 0.0, -a20, -a21, -a22]).reshape(6, 6)
+    H_j = np.array([  # (…) exp(ω_j): Jr⁻¹; t_j + R_j v_j: Rz(ψ)ᵀ R_j
+        j00, j01, j02, 0.0, 0.0, 0.0,
+        j10, j11, j12, 0.0, 0.0, 0.0,
+        j20, j21, j22, 0.0, 0.0, 0.0,
+        0.0, 0.0, 0.0, c * b00 + s * b10, c * b01 + s * b11, c * b02 + s * b12,
+        0.0, 0.0, 0.0, c * b10 - s * b00, c * b11 - s * b01, c * b12 - s * b02,
+        0.0, 0.0, 0.0, b20, b21, b22]).reshape(6, 6)
     return e, H_i, H_j
 
 
 def _level_odometry_factor(g, key_i: int, key_j: int, delta_R: np.ndarray, d_level: np.ndarray, noise):
-    """A ``gtsam.CustomFactor`` of :func:`level_odometry_error`."""
+    """A ``gtsam.CustomFactor`` of :func:`level_odometry_error`. It keeps its last
+    linearization: the iSAM2 batch step relinearizes every factor of the window each
+    frame, and a third of the time neither pose has moved since (the relinearization
+    threshold), so the same error and Jacobians are handed back without recomputing them."""
+    dR, dl = delta_R.tolist(), d_level.tolist()
+    last: list = [None, None, None]  # rows of T_i, rows of T_j, (e, H_i, H_j)
 
     def error(_factor, values, H):
-        Ti = values.atPose3(key_i).matrix()
-        Tj = values.atPose3(key_j).matrix()
+        Ti = values.atPose3(key_i).matrix().tolist()
+        Tj = values.atPose3(key_j).matrix().tolist()
         if H is None:
-            return level_odometry_error(Ti, Tj, delta_R, d_level)
-        e, H_i, H_j = level_odometry_error(Ti, Tj, delta_R, d_level, jacobians=True)
-        H[0] = H_i
-        H[1] = H_j
-        return e
+            return _level_odometry(Ti, Tj, dR, dl, False)[0]
+        if Ti == last[0] and Tj == last[1]:
+            out = last[2]
+        else:
+            out = _level_odometry(Ti, Tj, dR, dl, True)
+            last[:] = Ti, Tj, out
+        H[0] = out[1]
+        H[1] = out[2]
+        return out[0]
 
     return g.CustomFactor(noise, [key_i, key_j], error)
 
@@ -276,6 +312,10 @@ class SmootherFilter(StepwiseFilter):
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(opts.smoother_relinearize_threshold)
         params.relinearizeSkip = 1
+        # removed and marginalized factors' slots are reused: without it iSAM2's factor array
+        # grows by every factor of the drive (~50 000 slots on a dense file), and its batch
+        # step, taken every frame here, walks and copies them all (dense 0034: ~25 % of a frame)
+        params.findUnusedFactorSlots = True
         self._window = float(opts.smoother_window_s)
         self._smoother = gtsam.IncrementalFixedLagSmoother(self._window, params)
         # "split": a repeat ends its track and starts a new one, in sync (no remap)
@@ -310,7 +350,8 @@ class SmootherFilter(StepwiseFilter):
         # every factor of the drive, for refine
         self._odometry_factors: list = []
         self._prior_factors: list = []
-        self._stereo_factors: list = []  # GenericStereoFactor3D (base noise, no kernel)
+        self._stereo_factors: list = []  # GenericStereoFactor3D (the smoother's noise model)
+        self._stereo_pix = np.zeros((1024, 4))  # their pixels [uL, vL, uR, vR], row = index in _stereo_factors
         self._stereo_removed: set[int] = set()
         self._to_remove: list[int] = []  # smoother factor indices to remove with the next update
         self._unchecked: tuple = (-1, [])  # (frame, observations, factor indices) not yet checked
@@ -383,10 +424,10 @@ class SmootherFilter(StepwiseFilter):
 
     # --- keys -------------------------------------------------------------------------
     def _X(self, k: int) -> int:
-        return self._g.symbol("x", k)
+        return _X_BASE + k  # gtsam.symbol("x", k), without a call into GTSAM (~300 keys a frame)
 
     def _L(self, key: int) -> int:
-        return self._g.symbol("l", key)
+        return _L_BASE + key  # gtsam.symbol("l", key)
 
     # --- the frame --------------------------------------------------------------------
     def step(self, frame: Frame) -> FrameStats:
@@ -605,11 +646,16 @@ class SmootherFilter(StepwiseFilter):
             entry[2] = int(factor_index[entry[2]])
 
     def _stereo(self, pix: np.ndarray, k: int, key: int):
+        """The stereo factor of an observation (under the smoother's kernel; also kept,
+        in ``_stereo_factors``, for refine, which swaps the noise model)."""
         g = self._g
         meas = g.StereoPoint2(float(pix[0]), float(pix[2]), 0.5 * float(pix[1] + pix[3]))
-        f = g.GenericStereoFactor3D(meas, self._stereo_noise, self._X(k), self._L(key), self._K, self._body_P_sensor)
-        self._stereo_factors.append(g.GenericStereoFactor3D(meas, self._stereo_base, self._X(k), self._L(key), self._K,
-                                                            self._body_P_sensor))
+        f = g.GenericStereoFactor3D(meas, self._stereo_noise, _X_BASE + k, _L_BASE + key, self._K, self._body_P_sensor)
+        i = len(self._stereo_factors)
+        if i == self._stereo_pix.shape[0]:
+            self._stereo_pix = np.concatenate([self._stereo_pix, np.zeros_like(self._stereo_pix)])
+        self._stereo_pix[i] = pix
+        self._stereo_factors.append(f)
         return f
 
     def _check_outliers(self, t: int, added: list) -> None:
@@ -636,7 +682,7 @@ class SmootherFilter(StepwiseFilter):
             self._fresh.add(k)
         poses = np.array([self._pose_value[k] for k in uniq.tolist()])
         p = np.array([self._smoother.calculateEstimatePoint3(self._L(a[0].key)) for a in added]).reshape(n_added, 3)
-        err = self._whitened_norms(poses[inv], p, np.array([a[2] for a in added]))
+        err = self._whitened_norms(poses[inv], p, self._stereo_pix[np.array([a[3][1] for a in added], dtype=np.int64)])
         limit = opts.smoother_outlier_sigma if opts.smoother_outlier_sigma > 0 else np.inf
         bad = err > limit
         remove = []
@@ -690,15 +736,18 @@ class SmootherFilter(StepwiseFilter):
         n = len(todo)
         owner = np.array([j for j, (_, obs) in enumerate(todo) for _ in obs], dtype=np.int64)  # sorted
         frames = np.array([e[0] for _, obs in todo for e in obs], dtype=np.int64)
-        pix = np.array([e[3] for _, obs in todo for e in obs])
+        pix = self._stereo_pix[np.array([e[1] for _, obs in todo for e in obs], dtype=np.int64)]
         uniq, inv = np.unique(frames, return_inverse=True)
         for k in uniq.tolist():
             if k not in self._fresh:
                 self._pose_value[k] = self._smoother.calculateEstimatePose3(self._X(k)).matrix()
                 self._fresh.add(k)
-        world_T_imu = np.array([self._pose_value[k] for k in uniq.tolist()])[inv]
-        p = np.array([points[lm.key] for lm, _ in todo]).reshape(n, 3)
-        r, front = self._whitened_residuals(world_T_imu, p[owner], pix)
+        # camera from world of each observation: inverted once per pose, not per observation
+        cam_T_world = self._cam_T_world(np.array([self._pose_value[k] for k in uniq.tolist()]))
+        ts = np.array([self._pose_stamp[k] for k in uniq.tolist()])[inv]
+        cam_T_world = cam_T_world[inv]
+        p = np.array([points[lm.key] for lm, _ in todo]).reshape(n, 3)[owner]
+        r, front = self._camera_residuals(cam_T_world, p, pix)
         r = np.where(front[:, None], r, 0.0)
         w = front.astype(np.float64)
         starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
@@ -715,7 +764,7 @@ class SmootherFilter(StepwiseFilter):
         moving = valid & (stat > self._drift_gate * max(typical, 1e-12))
         speed = np.zeros(n)
         if np.any(moving):
-            speed = self._apparent_speed(world_T_imu, p[owner], frames, r, front, starts)
+            speed = self._apparent_speed(cam_T_world, p, ts, r, front, starts)
             moving &= speed > self.options.smoother_drift_min_speed_mps
         drift_log = self.diagnostics.drift_log
         if drift_log is not None:
@@ -748,19 +797,17 @@ class SmootherFilter(StepwiseFilter):
             del self._tracks[lm.id]
             self._rejected_ids.add(lm.id)
 
-    def _apparent_speed(self, world_T_imu, p, frames, r, front, starts) -> np.ndarray:
+    def _apparent_speed(self, cam_T_world, p, ts, r, front, starts) -> np.ndarray:
         """(n,) speed (m/s) of n landmarks taken as points moving at constant velocity:
         one Gauss-Newton step from their static estimate for (δp, v) with
-        p(t_i) = p + δp + v (t_i − t̄), over observations from poses ``world_T_imu``
-        (N, 4, 4) of points ``p`` (N, 3) with whitened residuals ``r`` (N, 3), grouped
-        by landmark (``starts``: first row of each)."""
-        cam_T_world = self._model.cam_T_imu @ se3_inverse(world_T_imu)
+        p(t_i) = p + δp + v (t_i − t̄), over observations at times ``ts`` (N,) from
+        camera poses ``cam_T_world`` (N, 4, 4) of points ``p`` (N, 3) with whitened
+        residuals ``r`` (N, 3), grouped by landmark (``starts``: first row of each)."""
         R = cam_T_world[:, :3, :3]
         q = np.einsum("kij,kj->ki", R, p) + cam_T_world[:, :3, 3]
         q[:, 2] = np.where(front, q[:, 2], 1.0)
         J = self._whitened_point_jacobians(R, q) * front[:, None, None]
         w = front.astype(np.float64)
-        ts = np.array([self._pose_stamp[k] for k in frames.tolist()])
         cnt = np.add.reduceat(w, starts)
         tmean = np.add.reduceat(w * ts, starts) / np.maximum(cnt, 1)
         owner = np.repeat(np.arange(starts.size), np.diff(np.r_[starts, ts.size]))
@@ -814,11 +861,18 @@ class SmootherFilter(StepwiseFilter):
         r, front = self._whitened_residuals(world_T_imu, p, pix)
         return np.where(front, np.sqrt(np.einsum("ki,ki->k", r, r)), np.inf)
 
+    def _cam_T_world(self, world_T_imu: np.ndarray) -> np.ndarray:
+        """(n, 4, 4) left camera from world of IMU poses world_T_imu (n, 4, 4)."""
+        return self._model.cam_T_imu @ se3_inverse(world_T_imu)
+
     def _whitened_residuals(self, world_T_imu: np.ndarray, p: np.ndarray, pix: np.ndarray):
         """((n, 3) whitened (uL, uR, v) errors, prediction − measurement, of observations
         ``pix`` (n, 4) of landmarks ``p`` (n, 3) from poses (n, 4, 4); (n,) in front of
         the camera)."""
-        cam_T_world = self._model.cam_T_imu @ se3_inverse(world_T_imu)
+        return self._camera_residuals(self._cam_T_world(world_T_imu), p, pix)
+
+    def _camera_residuals(self, cam_T_world: np.ndarray, p: np.ndarray, pix: np.ndarray):
+        """:meth:`_whitened_residuals` from camera poses ``cam_T_world`` (n, 4, 4)."""
         q = np.einsum("kij,kj->ki", cam_T_world[:, :3, :3], p) + cam_T_world[:, :3, 3]
         cam = self.calibration.camera
         front = q[:, 2] > 1e-6
@@ -954,7 +1008,7 @@ def refine(smoother: SmootherFilter) -> tuple[np.ndarray, dict]:
     def solve(factors, initial):
         graph = g.NonlinearFactorGraph(base_graph)
         for f in factors:
-            graph.add(f.cloneWithNewNoiseModel(robust) if opts.refine_kernel != "none" else f)
+            graph.add(f.cloneWithNewNoiseModel(robust))  # the smoother's factors carry its kernel
         params = g.LevenbergMarquardtParams()
         params.setMaxIterations(opts.refine_max_iterations)
         try:
