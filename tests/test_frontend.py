@@ -206,21 +206,24 @@ def test_tracks_past_their_appearance_bound_are_kept_while_the_geometry_confirms
     source = open_stereo_source(_plain_folder(tmp_path / "plain", n=10, noise=10.0))
     true_moved = 9 * np.array([-1.5, -0.5, -1.5, -0.5])
     survivors, error = {}, {}
-    for factor in (0.0, 1.5):
+    # off; on (0.5 px); on with a bound (0.05 px) below the positions' own error, so none is confirmed
+    for case, (factor, bound) in {"off": (0.0, 0.5), "on": (1.5, 0.5), "tight": (1.5, 0.05)}.items():
         tracker = StereoTracker(source.K, source.baseline_m, TrackerOptions(
-            affine_confirm_factor=factor, target_features=80, grid_cols=4, grid_rows=2))
+            affine_confirm_factor=factor, affine_confirm_px=bound, target_features=80, grid_cols=4, grid_rows=2))
         frames = [tracker.process(*source.read_pair(t)) for t in range(source.n_frames)]
         (ids0, px0), (ids9, px9) = frames[0], frames[-1]
         common, i0, i9 = np.intersect1d(ids0, ids9, return_indices=True)
-        survivors[factor] = common.size / ids0.size
-        error[factor] = np.median(np.abs(px9[i9] - px0[i0] - true_moved).max(axis=1))
+        survivors[case] = common.size / ids0.size
+        error[case] = np.median(np.abs(px9[i9] - px0[i0] - true_moved).max(axis=1))
         stats = tracker.stats.to_dict()
-        assert (stats["confirmed"] > 0) == (factor > 0)
-        if factor == 0:  # the appearance check alone ends many
+        assert (stats["confirmed"] > 0) == (case == "on")
+        assert stats["rejections"]["geometric"] == stats["rejections"]["drift"] == 0
+        if case != "on":  # the appearance check ends many; unconfirmed suspects count under it
             assert stats["rejections"]["appearance"] >= 0.2 * ids0.size
-    assert survivors[1.5] > survivors[0.0] + 0.2
+    assert survivors["on"] > survivors["off"] + 0.2
+    assert abs(survivors["tight"] - survivors["off"]) <= 0.05
     # the tracks the geometry kept are as close to the true motion as those the appearance check kept
-    assert error[1.5] <= 1.1 * error[0.0] + 0.05
+    assert error["on"] <= 1.1 * error["off"] + 0.05
 
 
 def test_tracker_counts_every_track_end_with_its_length(tmp_path):
