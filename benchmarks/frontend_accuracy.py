@@ -7,6 +7,7 @@ Usage::
     vislam simulate --images --frames 500 --seed S --velocity-noise 0.5 --angular-noise 0.05 --out DIR/seedS
     PYTHONPATH=src python benchmarks/frontend_accuracy.py DIR/seed0 DIR/seed1 ... [--euroc FOLDER]
                                                           [--out benchmarks/results/frontend_accuracy.json]
+                                                          [--tracker-config FILE.yaml]
 
 For each rendered date folder (``vislam simulate --images``):
 
@@ -21,6 +22,10 @@ For each rendered date folder (``vislam simulate --images``):
   dead reckoning (``--mode localization``) for scale; both SLAMs again told the drive's
   IMU noise (``--told MPS RADPS``, default 0.5 0.05: with its defaults the filter trusts
   the noisy velocities and ends near dead reckoning).
+
+With ``--tracker-config FILE`` the tracker runs with those options (``vislam track --config``,
+``vislam run --tracker-config``) and its tracks and SLAM runs go to ``DIR/variant_<FILE's stem>/``;
+the simulator's runs stay in DIR and are shared by every variant.
 
 With ``--euroc`` (default ``../shared/data/images/euroc_v1_01_first95`` when present):
 stereo row difference, depths, the drift of the full-length tracks from the common image
@@ -64,30 +69,34 @@ def _consecutive(obs) -> bool:
     return bool(np.array_equal(last - first + 1, obs.track_lengths()))
 
 
-def rendered(folder: Path, noise: tuple[float, float] | None) -> dict:
+def rendered(folder: Path, noise: tuple[float, float] | None, tracker_config: Path | None = None) -> dict:
     from vislam.core.render import camera_poses, track_reprojection_errors
     from vislam.tools.dataset_io import load_sequence
     from vislam.tools.trajectory_io import read_tum
 
     drive = next(folder.glob("sim_drive_*_sync"))
-    tracks = folder / "tracks.npz"
+    work = folder / f"variant_{tracker_config.stem}" if tracker_config else folder
+    work.mkdir(exist_ok=True)
+    config = ["--config", tracker_config] if tracker_config else []
+    tracks = work / "tracks.npz"
     if not tracks.is_file():
-        _vislam("track", drive, "--out", tracks, "--quiet")
+        _vislam("track", drive, "--out", tracks, "--quiet", *config)
     seq = load_sequence(tracks)
     _, world_T_imu = read_tum(folder / "groundtruth.tum")
     scene = SimpleNamespace(**dict(np.load(folder / "scene_planes.npz")))
     err = track_reprojection_errors(seq.observations, camera_poses(world_T_imu, seq.cam_T_imu), seq.camera.K,
                                     seq.camera.baseline_m, scene)
     finite = err[np.isfinite(err)]
-    out = {"folder": str(folder), "frames": seq.n_frames, "tracks": seq.n_landmarks,
+    out = {"folder": str(folder), "tracker_config": str(tracker_config) if tracker_config else None,
+           "frames": seq.n_frames, "tracks": seq.n_landmarks,
            "observations": seq.observations.n_observations, "ungraded_share": float(1 - finite.size / err.size),
            "error_median_px": float(np.median(finite)), "error_p90_px": float(np.percentile(finite, 90)),
            "beyond_3px_share": float(np.mean(finite > 3)),
            "landmarks_per_frame_mean": float(seq.observations.counts_per_frame().mean()),
            "track_length_median": float(np.median(seq.observations.track_lengths())),
            "track_length_is_consecutive": _consecutive(seq.observations),
-           "statistics": json.loads((folder / "tracks.tracking.json").read_text())["rejections"],
-           "track_ends": json.loads((folder / "tracks.tracking.json").read_text()).get("track_ends")}
+           "statistics": json.loads((work / "tracks.tracking.json").read_text())["rejections"],
+           "track_ends": json.loads((work / "tracks.tracking.json").read_text()).get("track_ends")}
     gt = folder / "groundtruth.kitti"
     # the filter with its defaults (the command as written) and told the drive's IMU noise (--told)
     told = ["--velocity-noise", str(noise[0]), "--angular-noise", str(noise[1])] if noise else []
@@ -98,9 +107,11 @@ def rendered(folder: Path, noise: tuple[float, float] | None) -> dict:
                                     ("dead_reckoning", folder / "sequence.npz", "localization", [])):
         if extra == [] and name.endswith("_told"):
             continue
-        run = folder / f"run_{name}"
+        on_drive = data == drive
+        run = (work if on_drive else folder) / f"run_{name}"
         if not (run / "summary.json").is_file():
-            _vislam("run", data, "--mode", mode, "--gt", gt, "--out", run, "--quiet", *extra)
+            tracker = ["--tracker-config", tracker_config] if on_drive and tracker_config else []
+            _vislam("run", data, "--mode", mode, "--gt", gt, "--out", run, "--quiet", *extra, *tracker)
         out[f"ate_{name}_m"] = _ate(run)
     out["ate_ratio_tracked_over_simulator"] = out["ate_slam_tracked_m"] / out["ate_slam_simulator_m"]
     if "ate_slam_tracked_told_m" in out:
@@ -140,10 +151,12 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "frontend_accuracy.json")
     parser.add_argument("--told", type=float, nargs=2, metavar=("MPS", "RADPS"), default=(0.5, 0.05),
                         help="also run both SLAMs told this IMU noise (the drives' --velocity-noise/--angular-noise)")
+    parser.add_argument("--tracker-config", type=Path, metavar="FILE",
+                        help="tracker options (YAML/TOML); tracks and SLAM runs in DIR/variant_<stem>/")
     args = parser.parse_args()
     result = {"rendered": [], "euroc": None}
     for folder in args.folders:
-        r = rendered(folder, args.told)
+        r = rendered(folder, args.told, args.tracker_config)
         result["rendered"].append(r)
         print(f"{folder}: {r['frames']} frames, error median {r['error_median_px']:.3f} px, "
               f"{100 * r['beyond_3px_share']:.2f} % > 3 px, {r['landmarks_per_frame_mean']:.0f} landmarks/frame, "

@@ -4,6 +4,7 @@
 Usage::
 
     PYTHONPATH=src python benchmarks/frontend_speed.py [--source FOLDER] [--frames 200] [--out FILE.json]
+                                                       [--config TRACKER.yaml]
 
 On one core (the process pinned to one CPU with ``os.sched_setaffinity``, like ``taskset -c``;
 ``cv2.setNumThreads(1)``; BLAS/OpenMP limited to one thread) it tracks the
@@ -59,11 +60,11 @@ STEPS = ("_frame", "_track_temporal", "_track_stereo", "_check_geometry", "_new_
 PRIMITIVES = ("_klt", "_affine", "_detect", "_templates", "_geometric_inliers", "_expected_frames")
 
 
-def _step_times(source, n, pairs) -> dict:
+def _step_times(source, n, pairs, options=None) -> dict:
     """CPU ms per frame in each step and primitive (time.process_time around each call)."""
     from vislam.core.tracking import StereoTracker
 
-    tracker = StereoTracker(source.K, source.baseline_m)
+    tracker = StereoTracker(source.K, source.baseline_m, options)
     spent = {name: 0.0 for name in STEPS + PRIMITIVES}
 
     def timed(name, method):
@@ -86,10 +87,10 @@ def _step_times(source, n, pairs) -> dict:
     return out
 
 
-def _track(source, n, pairs=None):
+def _track(source, n, pairs=None, options=None):
     from vislam.core.tracking import StereoTracker
 
-    tracker = StereoTracker(source.K, source.baseline_m)
+    tracker = StereoTracker(source.K, source.baseline_m, options)
     times, kept = [], 0
     for t in range(n):
         t0 = time.perf_counter()
@@ -107,7 +108,11 @@ def main() -> int:
     parser.add_argument("--source", help="KITTI raw drive / EuRoC / plain folder (default: render one)")
     parser.add_argument("--frames", type=int, default=200, help="frames to track (default 200)")
     parser.add_argument("--out", default="benchmarks/results/frontend_speed.json")
+    parser.add_argument("--config", help="tracker options (YAML/TOML; default: TrackerOptions())")
     args = parser.parse_args()
+    from vislam.cli.common import tracker_options_from_args
+
+    options = tracker_options_from_args(args.config)
     cv2.setNumThreads(1)
     if hasattr(os, "sched_setaffinity"):  # one core: like taskset -c N
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
@@ -121,14 +126,14 @@ def main() -> int:
     n = min(args.frames, source.n_frames)
     pairs = [source.read_pair(t) for t in range(n)]
     cpu0 = time.process_time()
-    t_proc, kept, tracker = _track(source, n, pairs)
+    t_proc, kept, tracker = _track(source, n, pairs, options)
     cpu_proc = time.process_time() - cpu0
-    t_all, _, _ = _track(source, n)
+    t_all, _, _ = _track(source, n, options=options)
     # memory: working memory after N/4 and N frames
     memory = {}
     for m in (max(2, n // 4), n):
         tracemalloc.start()
-        _, kept_m, _ = _track(source, m, pairs)
+        _, kept_m, _ = _track(source, m, pairs, options)
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
         memory[m] = {"peak_mib": peak / 2**20, "observations_mib": kept_m * 40 / 2**20,
@@ -139,10 +144,10 @@ def main() -> int:
 
     prof = cProfile.Profile()
     prof.enable()
-    _track(source, min(n, 60), pairs)
+    _track(source, min(n, 60), pairs, options)
     prof.disable()
     stats = pstats.Stats(prof)
-    steps = _step_times(source, n, pairs)
+    steps = _step_times(source, n, pairs, options)
     result = {
         "machine": {"nproc": os.cpu_count(), "python": platform.python_version(), "opencv": cv2.__version__,
                     "loadavg": os.getloadavg(), "cpu": platform.processor()},

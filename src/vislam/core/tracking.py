@@ -26,8 +26,11 @@ Each frame (:meth:`StereoTracker.process`, one method per step):
    translation-only KLT. The template's steepest-descent images are computed once per
    track (no image gradients). A track whose warp leaves a residual above
    ``affine_max_residual`` of the template's contrast (or ``affine_relative_residual`` times
-   its own first right match's residual, if larger) ends; one whose warp has scaled the
-   template by ``affine_reanchor_scale`` takes its current appearance as the template.
+   its own first right match's residual, if larger) ends — unless it is within
+   ``affine_confirm_factor`` times that bound and agrees with the geometry of the same frame
+   (step 3) to the tight ``affine_confirm_px`` (``_confirm_suspects``; it keeps its template);
+   one whose warp has scaled the template by ``affine_reanchor_scale`` takes its current
+   appearance as the template.
 3. **Geometric check** (``_check_geometry``) — the previous frame's stereo triangulation of
    the tracked points against their new left pixels: P3P in RANSAC (``cv2.solvePnPRansac``)
    gives the camera motion; a track whose predicted ``[uL, v, uR]`` is more than
@@ -83,7 +86,7 @@ class TrackerOptions:
     """Options of :class:`StereoTracker` (units in the names; defaults documented inline)."""
 
     #: Number of live tracks the detector tops up to, spread over the grid.
-    target_features: int = 450
+    target_features: int = 800
     #: Detection grid: columns x rows of cells, each filled to its share of target_features.
     grid_cols: int = 10
     grid_rows: int = 4
@@ -123,6 +126,17 @@ class TrackerOptions:
     #: takes its current appearance as the new template (0 = never: tracks end when the warp's
     #: determinant leaves (0.2, 5)). Approaching points grow and show finer texture than at first.
     affine_reanchor_scale: float = 1.5
+    #: A track whose residual is above its bound (affine_max_residual / affine_relative_residual) but
+    #: within this multiple of it is not ended by the appearance check: it is kept (with its template)
+    #: if it passes the geometric and drift checks of the same frame to affine_confirm_px (0 or 1 =
+    #: off: the appearance check alone ends it). A third of the tracks the appearance check ended
+    #: on the rendered drives were within 1 px of their true point: the texture had changed
+    #: (finer detail coming into view, perspective), not the point.
+    affine_confirm_factor: float = 1.5
+    #: ... and such a track is held to this bound (px, in the metric of the geometric and drift checks)
+    #: instead of ransac_threshold_px / drift_threshold_px (0 = the checks' own thresholds): the texture
+    #: may change, but the position must agree with the geometry's prediction closely.
+    affine_confirm_px: float = 0.5
     #: Gauss-Newton iterations of the affine refinement, at most; a track stops when its step is
     #: below affine_step_px.
     affine_iterations: int = 5
@@ -174,7 +188,7 @@ class TrackerOptions:
     #: (constant velocity), stays in view for at least this many frames (0 = off; before the first
     #: motion is known every corner is started). On a forward-moving car the corners at the image
     #: sides leave within a few frames; the budget goes to those that stay.
-    min_expected_frames: int = 8
+    min_expected_frames: int = 12
     #: Tracks seen in fewer frames are left out of the output (see :func:`finish_tracks`).
     min_track_length: int = 3
 
@@ -246,6 +260,7 @@ class TrackerStatistics:
     rejected_drift: int = 0  # drifted from the track's first triangulation
     left_image: int = 0  # left the image
     reanchored: int = 0  # templates replaced by the current appearance (affine_reanchor_scale)
+    confirmed: int = 0  # tracks past their appearance bound kept by the geometric checks (affine_confirm_factor)
     not_started: int = 0  # new corners expected to leave the view too soon (min_expected_frames)
     #: per end reason (the keys of "rejections" but stereo_new): how many frames the ended tracks lasted,
     #: as a histogram (index = length, the last bin holds everything longer)
@@ -275,6 +290,7 @@ class TrackerStatistics:
             "detected": self.detected,
             "not_started": self.not_started,
             "reanchored": self.reanchored,
+            "confirmed": self.confirmed,
             "rejections": {
                 "forward_backward": self.lost_temporal,
                 "left_image": self.left_image,
@@ -457,11 +473,13 @@ class StereoTracker:
         z = fx * self.baseline_m / d
         return np.stack([z * (pixels[:, 0] - cx) / fx, z * (pixels[:, 1] - cy) / fy, z], axis=1)
 
-    def _geometric_inliers(self, p_prev, pixels):
-        """True for tracks consistent with one rigid motion (see step 3 of the module docstring)."""
+    def _geometric_inliers(self, p_prev, pixels, threshold_px=None):
+        """True for tracks consistent with one rigid motion (see step 3 of the module docstring);
+        ``threshold_px``: per-track bounds (n,), default ``ransac_threshold_px``."""
         cv2 = self._cv2
         o = self.options
         n = pixels.shape[0]
+        bound = o.ransac_threshold_px if threshold_px is None else threshold_px
         self._motion_ok = False
         if o.ransac_threshold_px <= 0 or n < o.ransac_min_points:
             return np.ones(n, bool)
@@ -487,9 +505,9 @@ class StereoTracker:
         if o.stereo_sigma_px > 0:
             pred = np.stack([uL, v, uR, v], axis=1)
             cov = R @ self._point_covariance(p_prev) @ R.T
-            return good & self._gate(pred, pixels, q, cov, o.ransac_threshold_px)
+            return good & self._gate(pred, pixels, q, cov, bound)
         err = np.maximum(np.hypot(uL - pixels[:, 0], v - pixels[:, 1]), np.hypot(uR - pixels[:, 2], v - pixels[:, 3]))
-        return good & (err <= o.ransac_threshold_px)
+        return good & (err <= bound)
 
     def _point_covariance(self, pixels):
         """(n, 3, 3) covariance of the stereo triangulation of ``pixels`` (n, 4) in the left camera,
@@ -645,20 +663,22 @@ class StereoTracker:
             q = q @ R.T + t
         return frames
 
-    def _drift_ok(self, p_in_ref, pixels, cov_ref=None):
-        """True where the chained first triangulation reprojects within drift_threshold_px."""
+    def _drift_ok(self, p_in_ref, pixels, cov_ref=None, threshold_px=None):
+        """True where the chained first triangulation reprojects within drift_threshold_px (or the
+        per-track ``threshold_px`` (n,))."""
         o = self.options
+        bound = o.drift_threshold_px if threshold_px is None else threshold_px
         if o.drift_threshold_px <= 0 or pixels.shape[0] == 0:
             return np.ones(pixels.shape[0], bool)
         q = p_in_ref @ self._cam_T_ref[:3, :3].T + self._cam_T_ref[:3, 3]
         pred = self._project(q)
         if o.stereo_sigma_px > 0 and cov_ref is not None:
             R = self._cam_T_ref[:3, :3]
-            keep = self._gate(pred, pixels, q, R @ cov_ref @ R.T, o.drift_threshold_px)
+            keep = self._gate(pred, pixels, q, R @ cov_ref @ R.T, bound)
             return keep | ~np.isfinite(pred).all(axis=1)  # NaN (no reference point): kept
         err = np.maximum(np.hypot(pred[:, 0] - pixels[:, 0], pred[:, 1] - pixels[:, 1]),
                          np.hypot(pred[:, 2] - pixels[:, 2], pred[:, 3] - pixels[:, 3]))
-        return ~(err > o.drift_threshold_px)  # NaN (no reference point): kept
+        return ~(err > bound)  # NaN (no reference point): kept
 
     def _cell_of(self, p):
         o = self.options
@@ -744,6 +764,7 @@ class StereoTracker:
             tracks = self._track_temporal(frame, tracks)
             tracks = self._track_stereo(frame, tracks)
             tracks = self._check_geometry(tracks)
+            tracks = self._confirm_suspects(tracks)
         tracks = tracks.concat(self._new_tracks(frame, tracks))
         return self._commit(frame, tracks)
 
@@ -797,13 +818,15 @@ class StereoTracker:
             if o.affine_radius_px <= 0:
                 return tracks
         bound = np.maximum(o.affine_max_residual, o.affine_relative_residual * tracks.residual0)
-        pl, AL, okl, _ = self._affine(frame["left_f"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0],
-                                      bound)
+        soft = bound * max(1.0, o.affine_confirm_factor)
+        pl, AL, okl, rl = self._affine(frame["left_f"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0],
+                                       soft)
         guess_r = tracks.pixels[:, 2:] + (pl - tracks.pixels[:, :2]) if o.stereo_tracked_levels > 0 else \
             pl - np.stack([disparity, np.zeros_like(disparity)], axis=1)
-        pr, AR, okr, _ = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1], bound)
+        pr, AR, okr, rr = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1], soft)
         tracks.pixels = np.concatenate([pl, pr], axis=1)
         tracks.warps = np.stack([AL, AR], axis=1)
+        tracks.suspect = np.maximum(rl, rr) > bound  # past the bound, within soft: up to the geometric checks
         tracks = self._end(tracks, okl & okr & self._stereo_ok(tracks.pixels), "appearance")
         return self._reanchor(frame, tracks)
 
@@ -813,25 +836,58 @@ class StereoTracker:
         s = self.options.affine_reanchor_scale
         if s <= 0 or not len(tracks):
             return tracks
-        grown = np.flatnonzero(np.linalg.det(tracks.warps[:, 0]) > s * s)
-        if grown.size:
-            AL_inv = np.linalg.inv(tracks.warps[grown, 0])
-            tracks.templates[grown] = self._templates(frame["left_f"], tracks.pixels[grown, :2])
-            tracks.warps[grown, 1] = tracks.warps[grown, 1] @ AL_inv
-            tracks.warps[grown, 0] = np.eye(2)
-            self.stats.reanchored += int(grown.size)
+        grown = np.flatnonzero((np.linalg.det(tracks.warps[:, 0]) > s * s) & ~tracks.suspect)
+        self._new_template(frame, tracks, grown)
+        self.stats.reanchored += int(grown.size)
+        return tracks
+
+    def _new_template(self, frame, tracks: "_Tracks", rows: np.ndarray) -> None:
+        """Tracks ``rows`` take their current left appearance as the template; the right warp follows."""
+        if rows.size:
+            AL_inv = np.linalg.inv(tracks.warps[rows, 0])
+            tracks.templates[rows] = self._templates(frame["left_f"], tracks.pixels[rows, :2])
+            tracks.warps[rows, 1] = tracks.warps[rows, 1] @ AL_inv
+            tracks.warps[rows, 0] = np.eye(2)
+
+    def _confirm_suspects(self, tracks: "_Tracks") -> "_Tracks":
+        """Tracks past their appearance bound (``affine_confirm_factor``) that passed this frame's
+        geometric and drift checks (to ``affine_confirm_px``) are kept, with their template; without
+        a motion to check them against (or with the drift check off), they end under the
+        appearance check."""
+        if not tracks.suspect.any():
+            return tracks
+        if not self._motion_ok or self.options.drift_threshold_px <= 0:
+            return self._end(tracks, ~tracks.suspect, "appearance")
+        self.stats.confirmed += int(np.count_nonzero(tracks.suspect))
+        tracks.suspect = np.zeros(len(tracks), bool)
         return tracks
 
     def _check_geometry(self, tracks: "_Tracks") -> "_Tracks":
-        """Steps 3 and 3b: P3P-RANSAC against the previous triangulation, then the drift check."""
-        tracks = self._end(tracks, self._geometric_inliers(tracks.prev, tracks.pixels), "geometric")
+        """Steps 3 and 3b: P3P-RANSAC against the previous triangulation, then the drift check.
+
+        Tracks past their appearance bound (``suspect``) are held to ``affine_confirm_px`` in both
+        checks; one that fails ends under the appearance check."""
+        o = self.options
+        tight = o.affine_confirm_px if o.affine_confirm_px > 0 else math.inf
+        ok = self._geometric_inliers(tracks.prev, tracks.pixels,
+                                     np.where(tracks.suspect, min(tight, o.ransac_threshold_px), o.ransac_threshold_px))
+        tracks = self._end_suspects(tracks, ok, "geometric")
         if not self._motion_ok:  # the chain is broken: no drift reference for the tracks alive now
             tracks.refs = np.full_like(tracks.refs, np.nan)
             return tracks
         step = np.eye(4)
         step[:3, :3], step[:3, 3] = self._motion
         self._cam_T_ref = step @ self._cam_T_ref
-        return self._end(tracks, self._drift_ok(tracks.refs, tracks.pixels, tracks.refs_cov), "drift")
+        ok = self._drift_ok(tracks.refs, tracks.pixels, tracks.refs_cov,
+                            np.where(tracks.suspect, min(tight, o.drift_threshold_px), o.drift_threshold_px))
+        return self._end_suspects(tracks, ok, "drift")
+
+    def _end_suspects(self, tracks: "_Tracks", keep: np.ndarray, reason: str) -> "_Tracks":
+        """Like :meth:`_end`, but the suspects (past their appearance bound) that end are counted
+        under the appearance check."""
+        passed = keep | tracks.suspect
+        tracks = self._end(tracks, passed, reason)
+        return self._end(tracks, keep[passed] | ~tracks.suspect, "appearance")
 
     def _new_tracks(self, frame, tracks: "_Tracks") -> "_Tracks":
         """Step 4: corners in the cells below their share, matched into the right image."""
@@ -900,6 +956,11 @@ class _Tracks:
     born: np.ndarray  # (n,) int64: frame index of the first observation
     residual0: np.ndarray  # (n,): the affine residual (relative to contrast) of its first right match
     refs_cov: np.ndarray  # (n, 3, 3): covariance of refs (stereo_sigma_px)
+    suspect: np.ndarray = None  # (n,) bool: past the appearance bound, kept only if the geometry confirms it
+
+    def __post_init__(self):
+        if self.suspect is None:
+            self.suspect = np.zeros(self.ids.size, bool)
 
     @classmethod
     def empty(cls, m: int) -> "_Tracks":
