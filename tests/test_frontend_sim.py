@@ -102,3 +102,13 @@ def test_vislam_run_takes_the_drive_folder_and_reuses_its_tracks(rendered, tmp_p
     cfg.write_text("target_features: 200\n")
     assert main(args + ["--out", str(run), "--tracker-config", str(cfg)]) == 0
     assert json.loads((run / "summary.json").read_text())["dataset"]["tracking"]["cache_reused"] is False
+
+
+def test_the_colour_pair_of_a_grey_drive_is_refused_by_its_missing_images(rendered):
+    """A drive with only the grey cameras (the rendered one): ``--pair colour`` names the
+    missing image folders, not the calibration key its date folder lacks."""
+    from vislam.errors import DatasetError
+
+    _, _, folder = rendered
+    with pytest.raises(DatasetError, match=r"image_02[/\\]data: missing; expected the colour pair's images"):
+        open_stereo_source(folder, pair="colour")

@@ -330,11 +330,11 @@ def _interpolate(t_src: np.ndarray, values: np.ndarray, t: np.ndarray, path: Pat
 
 def _open_kitti(drive: Path, pair: str) -> StereoSource:
     left_cam, right_cam = ("image_00", "image_01") if pair == "grey" else ("image_02", "image_03")
-    calib = read_kitti_calibration(drive.parent, pair)
     ldir, rdir = drive / left_cam / "data", drive / right_cam / "data"
-    for d in (ldir, rdir):
+    for d in (ldir, rdir):  # before the calibration: a missing pair is the clearer message
         if not d.is_dir():
             raise DatasetError(f"{d}: missing; expected the {pair} pair's images ({left_cam}, {right_cam})")
+    calib = read_kitti_calibration(drive.parent, pair)
     left, right = _images_in(ldir), _images_in(rdir)
     _check_counts(left, right, ldir, rdir)
     tl = parse_kitti_timestamps(drive / left_cam / "timestamps.txt")
