@@ -43,7 +43,6 @@ import copy
 import json
 import logging
 import math
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -1000,6 +999,8 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    from vislam.tools.plotting import layout_once
+
     r = result
     fig = Figure(figsize=(9.5, 6), dpi=120)
     FigureCanvasAgg(fig)
@@ -1060,12 +1061,7 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
     ax2.set_ylabel("translational error (%)")
     ax2.grid(True, alpha=0.3)
 
-    # one layout pass, then none when saving (a layout engine left on the figure makes
-    # savefig draw it twice; constrained layout costs several draws)
-    with warnings.catch_warnings():  # "not compatible with tight_layout": the legends outside the axes
-        warnings.simplefilter("ignore", UserWarning)
-        fig.tight_layout(h_pad=1.5)
-    fig.set_layout_engine(None)
+    layout_once(fig, h_pad=1.5)  # one pass (constrained layout costs several draws)
     try:
         with atomic_path(path, suffix=".png") as tmp:
             fig.savefig(tmp, format="png", dpi=120)

@@ -116,20 +116,25 @@ def _side_view(ax, series) -> None:
         ax.set_ylim(mid - half, mid + half)
 
 
+def layout_once(fig, **tight_layout_kwargs) -> None:
+    """Lay ``fig`` out once with tight_layout and leave it without a layout engine, so that
+    saving it neither lays it out again nor draws it twice (``set_layout_engine(None)``:
+    "none" would keep a placeholder engine, for which savefig draws twice). Legends and
+    side views outside the axes make matplotlib say it cannot fit every decoration
+    exactly; the layout it does apply is the one wanted, so that warning is dropped."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        fig.tight_layout(**tight_layout_kwargs)
+    fig.set_layout_engine(None)
+
+
 def _fit_equal_aspect(fig, ax, limits) -> tuple[tuple[float, float], tuple[float, float]]:
     """Set the view ``limits`` (x0, x1, y0, y1), widened on the shorter side so that the
     equal-aspect data box fills the axes box laid out by tight_layout; returns (xlim, ylim)."""
     x0, x1, y0, y1 = limits
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
-    with warnings.catch_warnings():
-        # with the side view and a legend below the map, matplotlib may say it cannot
-        # make every decoration fit exactly; the layout it does apply is the one wanted
-        warnings.simplefilter("ignore", UserWarning)
-        fig.tight_layout()
-    # the layout is final (the view below is fitted to it): no second layout pass, and
-    # no extra draw, when the figure is saved
-    fig.set_layout_engine(None)  # None, not "none": that keeps a placeholder engine, for which savefig draws twice
+    layout_once(fig)  # final: the view below is fitted to it
     box = ax.get_position()
     fig_w, fig_h = fig.get_size_inches()
     box_ratio = (box.width * fig_w) / (box.height * fig_h)
