@@ -512,8 +512,6 @@ class SmootherFilter(StepwiseFilter):
             xi = np.concatenate([u[3:], u[:3]]) * tau  # (ω, v) τ
             step = g.Pose3.Expmap(xi)
             pose = self._current @ step.matrix()
-            cov = tau * tau * self._W_gtsam + 1e-12 * np.eye(6)
-            noise = g.noiseModel.Gaussian.Covariance(cov)
             if tau > self._window:
                 # a time gap longer than the window: everything before it leaves the window
                 # now, and the held velocity sample over it is a guess; the smoother starts
@@ -523,14 +521,16 @@ class SmootherFilter(StepwiseFilter):
                 f = g.PriorFactorPose3(X, g.Pose3(pose), self._pose_prior)
                 self._prior_factors.append(f)
                 self.diagnostics.restarts.append(t)
-            elif self.options.velocity_frame == "level":
-                # the step's displacement back in the level frame: τ v_level plus the turn's
-                # curvature (roll and pitch enter only this second-order term)
-                d_level = body_to_level(imu_T_world, step.translation())
-                f = _level_odometry_factor(g, self._X(t - 1), X, step.rotation().matrix(), d_level, noise)
             else:
-                f = g.BetweenFactorPose3(self._X(t - 1), X, step, noise)
-            if tau <= self._window:
+                cov = tau * tau * self._W_gtsam + 1e-12 * np.eye(6)
+                noise = g.noiseModel.Gaussian.Covariance(cov)
+                if self.options.velocity_frame == "level":
+                    # the step's displacement back in the level frame: τ v_level plus the turn's
+                    # curvature (roll and pitch enter only this second-order term)
+                    d_level = body_to_level(imu_T_world, step.translation())
+                    f = _level_odometry_factor(g, self._X(t - 1), X, step.rotation().matrix(), d_level, noise)
+                else:
+                    f = g.BetweenFactorPose3(self._X(t - 1), X, step, noise)
                 self._odometry_factors.append((t, f))
             self._time += tau
         self._pending_odometry = None
