@@ -27,6 +27,7 @@ from vislam.core.stalls import StallRemapBuffer
 from vislam.tools.dataset_io import load_sequence
 
 TOTALS: dict[str, float] = defaultdict(float)
+CALLS: dict[str, int] = defaultdict(int)
 
 #: (label, owner, attribute): the steps timed, in the order printed (indented: inside the one above)
 STEPS = [
@@ -58,34 +59,53 @@ def _timed(label, fn):
             return fn(*args, **kwargs)
         finally:
             TOTALS[label] += time.process_time() - t0
+            CALLS[label] += 1
     return wrapper
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def breakdown(steps, mode: str, title: str, description: str, counted: tuple[str, ...] = (), argv=None) -> int:
+    """The command line of this script for an estimator ``mode``: wrap every step of
+    ``steps`` — (label, owner, attribute or attributes: the first one the tree has, so
+    that the script also runs on older trees; a step it lacks is printed as "-") — in a
+    timer, run DATA ``--repeat`` times and print the best run's per-frame means; labels
+    containing one of ``counted`` also get their calls per frame."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("data")
     ap.add_argument("--repeat", type=int, default=3)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     seq = load_sequence(args.data)
     kw = dict(velocity_noise_mps=0.5, angular_noise_radps=0.05) if "/dense/" in args.data else {}
-    for label, owner, attr in STEPS:
-        setattr(owner, attr, _timed(label, getattr(owner, attr)))
+    present = []
+    for label, owner, attrs in steps:
+        attr = next((a for a in ((attrs,) if isinstance(attrs, str) else attrs) if hasattr(owner, a)), None)
+        if attr is not None:
+            setattr(owner, attr, _timed(label, getattr(owner, attr)))
+            present.append(label)
     best = None
     for _ in range(args.repeat):
         TOTALS.clear()
+        CALLS.clear()
         c0 = time.process_time()
-        run(seq, "slam", FilterOptions(**kw))
+        run(seq, mode, FilterOptions(**kw))
         cpu = time.process_time() - c0
         if best is None or cpu < best[0]:
-            best = (cpu, dict(TOTALS))
-    seconds, totals = best
+            best = (cpu, dict(TOTALS), dict(CALLS))
+    seconds, totals, calls = best
     n = seq.n_frames
-    print(f"{args.data}: {n} frames, SLAM run {seconds:.3f} s CPU ({1e3 * seconds / n:.3f} ms/frame, timers "
+    print(f"{args.data}: {n} frames, {title} run {seconds:.3f} s CPU ({1e3 * seconds / n:.3f} ms/frame, timers "
           f"included; best of {args.repeat})")
-    for label, _, _ in STEPS:
+    for label, _, _ in steps:
+        if label not in present:
+            print(f"  {label:44s} {'-':>8s}")
+            continue
         t = totals.get(label, 0.0)
-        print(f"  {label:44s} {1e6 * t / n:8.1f} us/frame  {100 * t / seconds:5.1f} %")
+        extra = f"  ({calls.get(label, 0) / n:.1f} calls/frame)" if any(c in label for c in counted) else ""
+        print(f"  {label:44s} {1e6 * t / n:8.1f} us/frame  {100 * t / seconds:5.1f} %{extra}")
     return 0
+
+
+def main() -> int:
+    return breakdown(STEPS, "slam", "SLAM", __doc__.splitlines()[0])
 
 
 if __name__ == "__main__":

@@ -18,17 +18,9 @@ printed as "-"), so the script also runs on older trees.
 
 from __future__ import annotations
 
-import argparse
-import time
-from collections import defaultdict
+from frame_breakdown import breakdown  # the timers, the runs and the table (this folder)
 
 from vislam.core import smoother
-from vislam.core.estimators import run
-from vislam.core.options import FilterOptions
-from vislam.tools.dataset_io import load_sequence
-
-TOTALS: dict[str, float] = defaultdict(float)
-CALLS: dict[str, int] = defaultdict(int)
 
 #: (label, owner, attribute or attributes): the steps timed, in the order printed (indented: inside the one above)
 STEPS = [
@@ -46,52 +38,8 @@ STEPS = [
 ]
 
 
-def _timed(label, fn):
-    def wrapper(*args, **kwargs):
-        t0 = time.process_time()
-        try:
-            return fn(*args, **kwargs)
-        finally:
-            TOTALS[label] += time.process_time() - t0
-            CALLS[label] += 1
-    return wrapper
-
-
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("data")
-    ap.add_argument("--repeat", type=int, default=3)
-    args = ap.parse_args()
-    seq = load_sequence(args.data)
-    kw = dict(velocity_noise_mps=0.5, angular_noise_radps=0.05) if "/dense/" in args.data else {}
-    present = []
-    for label, owner, attrs in STEPS:
-        # the first of the names the tree has (the factor's code was renamed)
-        attr = next((a for a in ((attrs,) if isinstance(attrs, str) else attrs) if hasattr(owner, a)), None)
-        if attr is not None:
-            setattr(owner, attr, _timed(label, getattr(owner, attr)))
-            present.append(label)
-    best = None
-    for _ in range(args.repeat):
-        TOTALS.clear()
-        CALLS.clear()
-        c0 = time.process_time()
-        run(seq, "smoother", FilterOptions(**kw))
-        cpu = time.process_time() - c0
-        if best is None or cpu < best[0]:
-            best = (cpu, dict(TOTALS), dict(CALLS))
-    seconds, totals, calls = best
-    n = seq.n_frames
-    print(f"{args.data}: {n} frames, smoother run {seconds:.3f} s CPU ({1e3 * seconds / n:.3f} ms/frame, timers "
-          f"included; best of {args.repeat})")
-    for label, _, _ in STEPS:
-        if label not in present:
-            print(f"  {label:44s} {'-':>8s}")
-            continue
-        t = totals.get(label, 0.0)
-        extra = f"  ({calls.get(label, 0) / n:.1f} calls/frame)" if "callbacks" in label else ""
-        print(f"  {label:44s} {1e6 * t / n:8.1f} us/frame  {100 * t / seconds:5.1f} %{extra}")
-    return 0
+    return breakdown(STEPS, "smoother", "smoother", __doc__.splitlines()[0], counted=("callbacks",))
 
 
 if __name__ == "__main__":
