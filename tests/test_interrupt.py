@@ -5,6 +5,7 @@ has run any of vislam's code (its own start-up, ~20-100 ms) is Python's to repor
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -38,19 +39,35 @@ def _before_vislam_started(stderr: str) -> bool:
             and all(not re.search(r"[/\\]vislam[/\\]", f) or f.endswith("__main__.py") for f in files))
 
 
+def _launcher_script(path, definitions: str, main: str):
+    """A script at ``path`` that runs vislam's launcher as ``vislam run`` with
+    ``vislam.cli.main`` replaced by ``main`` (an expression over ``definitions``, which
+    come after ``import sys, time`` and ``import vislam.cli``)."""
+    path.write_text("import sys, time\nimport vislam.cli\n" + definitions + f"vislam.cli.main = {main}\n"
+                    "from vislam._launcher import entry_point\nsys.argv = ['vislam', 'run']\nentry_point()\n")
+    return path
+
+
+@contextlib.contextmanager
+def _sigint_default():
+    """Children started in the block get SIGINT's default, as a terminal's Ctrl-C: a pytest
+    started with SIGINT ignored (`cmd &` in a script, nohup) would pass that on through
+    exec, and the child would finish every run; a Python handler in this process for the
+    moment of the fork leaves the child the default."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 @pytest.mark.skipif(os.name != "posix", reason="SIGINT delivery")
 @pytest.mark.parametrize("delay_s", [0.1, 0.2, 0.3, 0.5, 0.8, 1.5, 3.0])
 def test_sigint_leaves_all_or_nothing(dataset, tmp_path, delay_s):
     out = tmp_path / "out"
-    # A pytest started with SIGINT ignored (`cmd &` in a script, nohup) would pass that on
-    # through exec, and the child would finish every run: a Python handler in this process
-    # for the moment of the fork leaves the child SIGINT's default, as a terminal's Ctrl-C.
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
+    with _sigint_default():
         proc = subprocess.Popen([sys.executable, "-m", "vislam", "run", str(dataset), "--mode", "slam", "--out",
                                  str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    finally:
-        signal.signal(signal.SIGINT, previous)
     time.sleep(delay_s)
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=120)
@@ -75,10 +92,8 @@ def test_an_interrupt_wrapped_by_python_is_still_one_line_and_130(tmp_path):
     reaches the launcher, on Python 3.11, as a RuntimeError caused by the
     KeyboardInterrupt (seen under CPU load: a traceback ending in StereoCamera). It is an
     interrupt all the same; any other error still propagates."""
-    script = tmp_path / "boom.py"
-    script.write_text(
-        "import sys\n"
-        "import vislam.cli\n"
+    script = _launcher_script(
+        tmp_path / "boom.py",
         "class Descriptor:\n"
         "    def __set_name__(self, owner, name):\n"
         "        raise KeyboardInterrupt\n"
@@ -86,11 +101,8 @@ def test_an_interrupt_wrapped_by_python_is_still_one_line_and_130(tmp_path):
         "    class Camera:\n"
         "        x = Descriptor()\n"
         "def failing():\n"
-        "    raise RuntimeError('a real bug')\n"
-        "vislam.cli.main = interrupted_while_defining_a_class if sys.argv[1] == 'interrupt' else failing\n"
-        "from vislam._launcher import entry_point\n"
-        "sys.argv = ['vislam', 'run']\n"
-        "entry_point()\n")
+        "    raise RuntimeError('a real bug')\n",
+        "interrupted_while_defining_a_class if sys.argv[1] == 'interrupt' else failing")
     proc = subprocess.run([sys.executable, str(script), "interrupt"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 130
     assert "Traceback" not in proc.stderr
@@ -105,10 +117,8 @@ def test_an_interrupt_python_cannot_propagate_is_still_one_line_and_130(tmp_path
     a weakref callback of the import system's module locks during the start-up imports)
     used to print "Exception ignored ... KeyboardInterrupt" with a traceback and be lost;
     it now ends the run as any interrupt. Other unraisable errors are still printed."""
-    script = tmp_path / "unraisable.py"
-    script.write_text(
-        "import sys, time\n"
-        "import vislam.cli\n"
+    script = _launcher_script(
+        tmp_path / "unraisable.py",
         "class Bomb:\n"
         "    def __init__(self, exc):\n"
         "        self.exc = exc\n"
@@ -121,11 +131,8 @@ def test_an_interrupt_python_cannot_propagate_is_still_one_line_and_130(tmp_path
         "    return 0\n"
         "def other_unraisable():\n"
         "    Bomb(ValueError('raised in __del__'))\n"
-        "    return 0\n"
-        "vislam.cli.main = interrupted_in_a_callback if sys.argv[1] == 'interrupt' else other_unraisable\n"
-        "from vislam._launcher import entry_point\n"
-        "sys.argv = ['vislam', 'run']\n"
-        "entry_point()\n")
+        "    return 0\n",
+        "interrupted_in_a_callback if sys.argv[1] == 'interrupt' else other_unraisable")
     proc = subprocess.run([sys.executable, str(script), "interrupt"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 130
     assert proc.stderr.strip() == "vislam run: interrupted; no output written"
@@ -150,28 +157,19 @@ def test_an_interrupt_during_an_import_waits_for_the_import_to_finish(tmp_path):
         "        total += i\n"
         "except KeyboardInterrupt:\n"
         "    raise ImportError('the interrupt reached the import')\n"
-        "completed = True\n")
-    script = tmp_path / "importing.py"
-    script.write_text(
-        "import sys, time\n"
+        "print('imported to the end', flush=True)  # still inside the import: the interrupt waits\n")
+    script = _launcher_script(
+        tmp_path / "importing.py",
         f"sys.path.insert(0, {str(tmp_path)!r})\n"
-        "import vislam.cli\n"
         "def main():\n"
-        "    import converting_module\n"
-        "    print('imported', converting_module.completed, flush=True)\n"
+        "    import converting_module  # noqa: F401\n"
         "    for _ in range(500):\n"
         "        time.sleep(0.01)\n"
         "    print('not interrupted', flush=True)\n"
-        "    return 0\n"
-        "vislam.cli.main = main\n"
-        "from vislam._launcher import entry_point\n"
-        "sys.argv = ['vislam', 'run']\n"
-        "entry_point()\n")
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # see test_sigint_leaves_all_or_nothing
-    try:
+        "    return 0\n",
+        "main")
+    with _sigint_default():
         proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    assert proc.stdout.splitlines() == ["imported True"]
+    assert proc.stdout.splitlines() == ["imported to the end"]
     assert proc.returncode == 130
     assert proc.stderr.strip() == "vislam run: interrupted; no output written"
