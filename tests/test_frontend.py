@@ -454,7 +454,8 @@ def test_euroc_velocity_csv_is_interpolated_at_the_image_times(tmp_path):
 def test_a_folder_without_texture_is_tracked_with_a_warning_that_run_repeats(tmp_path):
     """Blank images give no corners: the tracks file is written (it is what the images
     hold), with a warning that names the likely causes, in the statistics, on `vislam
-    track`'s stderr and among `vislam run`'s warnings; textured pairs give none."""
+    track`'s stderr, among `vislam run`'s warnings and on the stderr of `check` and `compare`;
+    textured pairs give none."""
     from vislam.tools.frontend_io import track_source
 
     _, stats = track_source(open_stereo_source(_plain_folder(tmp_path / "textured")))
@@ -474,3 +475,8 @@ def test_a_folder_without_texture_is_tracked_with_a_warning_that_run_repeats(tmp
     assert run.returncode == 0, run.stderr
     warnings = json.loads((out / "summary.json").read_text())["warnings"]
     assert warnings[0].startswith("only 0.0 tracked landmarks per frame")
+    for command, prefix in (("check", "vislam check: warning: tracking: "), ("compare", "vislam: warning: tracking: ")):
+        done = subprocess.run([sys.executable, "-m", "vislam", command, str(blank), "--out", str(tmp_path / command)],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert done.stderr.count(prefix + "only 0.0 tracked landmarks per frame") == 1, (command, done.stderr)

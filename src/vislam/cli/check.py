@@ -48,7 +48,9 @@ def run(args) -> int:
     from vislam.cli.common import load_data
 
     args.quiet = getattr(args, "quiet", False) or args.json
-    sequence, _ = load_data(args, args.out)
+    sequence, tracking = load_data(args, args.out)
+    for warning in (tracking or {}).get("statistics", {}).get("warnings", []):  # an image folder's tracks
+        print(f"vislam check: warning: tracking: {warning}", file=sys.stderr)
     if not args.json:
         say_phase(f"checking {sequence.name}: timestamps, IMU noise and biases, speed units, IMU-camera rotation "
                   f"and translation, time offset, pixel noise, moving landmarks", quiet=False)

@@ -136,7 +136,7 @@ def run(args) -> int:
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     data = Path(args.data)
-    sequence, _ = load_data(args, args.out)
+    sequence, tracking = load_data(args, args.out)
     gt, gt_info = ground_truth_from_args(args, sequence)
     noise_info = auto = None
     if noise is not None:  # injected once, here, so that --auto checks what the methods will see
@@ -177,6 +177,8 @@ def run(args) -> int:
         return 130
     if not args.quiet:
         _print(format_comparison(comparison, content, stage.out_dir))
+        for warning in (tracking or {}).get("statistics", {}).get("warnings", []):  # an image folder's tracks
+            print(f"vislam: warning: tracking: {warning}", file=sys.stderr)
         for key, method in content["methods"].items():
             for warning in method.get("warnings") or ():
                 print(f"vislam: warning: {key}: {warning}", file=sys.stderr)
