@@ -186,6 +186,39 @@ def test_kitti_association_by_index_truncates_to_shorter(tmp_path, caplog):
     np.testing.assert_array_equal(assoc.gt_world_T_imu, gt_poses[:30])
 
 
+def test_doubtful_pairings_are_named_in_the_notes(tmp_path, caplog):
+    """An evaluation that can be computed but is doubtful says why: a ground truth covering
+    few of the estimate's poses, or an estimate whose path is much longer or shorter than
+    the ground truth's (another drive's ground truth, km/h read as m/s, a diverged run).
+    The estimate of the same drive, with its small drift, gets no such note."""
+    rng = np.random.default_rng(5)
+    gt_poses = drive(rng, 200)  # 240 m
+    est_poses = drifting_estimate(rng, gt_poses)
+    write_kitti(tmp_path / "gt.txt", gt_poses)
+    write_kitti(tmp_path / "est.txt", est_poses)
+    fast = est_poses.copy()
+    fast[:, :3, 3] *= 3.6  # speeds in km/h taken for m/s
+    write_kitti(tmp_path / "fast.txt", fast)
+    write_kitti(tmp_path / "short_gt.txt", gt_poses[:100])
+
+    def notes(est, gt):
+        return [n for n in evaluate_files(tmp_path / est, tmp_path / gt, gt_frame="imu").notes
+                if "path" in n or "have a ground-truth pose" in n]
+
+    assert notes("est.txt", "gt.txt") == []
+    with caplog.at_level(logging.WARNING, logger="vislam.tools.evaluation"):
+        (note,) = notes("fast.txt", "gt.txt")
+    ratio = float(note.split("m, ")[1].split("x the ground truth's")[0])
+    assert 3.5 < ratio < 3.7 and "gt.txt the ground truth of this drive" in note, note
+    assert note in caplog.text
+    (note,) = notes("est.txt", "short_gt.txt")
+    assert note.startswith("only 100 of the estimate's 200 poses have a ground-truth pose"), note
+    # a standing vehicle's noisy path is not judged: below 20 m of ground truth nothing is said
+    still = np.broadcast_to(np.eye(4), (200, 4, 4)).copy()
+    write_kitti(tmp_path / "still.txt", still)
+    assert notes("est.txt", "still.txt") == []
+
+
 def test_tum_association_by_timestamp():
     rng = np.random.default_rng(4)
     n = 200

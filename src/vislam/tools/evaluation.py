@@ -43,7 +43,7 @@ import copy
 import json
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -117,6 +117,17 @@ logger = logging.getLogger(__name__)
 
 #: Ground-truth path length (m) between the poses of the distance-based RPE.
 RPE_DISTANCE_M = 100.0
+
+#: The estimate's path length over the compared frames, as a multiple of the ground truth's,
+#: outside these bounds is named in the evaluation's notes: a ground truth of another drive,
+#: speeds in the wrong unit, or a run that diverged. (The filters' estimates of the shared
+#: drives are within 2 % of the ground truth's length, dead reckoning through their noise too.)
+PATH_LENGTH_RATIO_BOUNDS = (0.8, 1.25)
+#: ... checked on ground-truth paths at least this long (m): below it a vehicle standing still
+#: with noisy velocities makes any ratio.
+PATH_LENGTH_CHECK_MIN_M = 20.0
+#: Fewer compared pose pairs than this share of the estimate's poses is named in the notes.
+MIN_COVERAGE = 0.9
 #: The file of a run folder (``vislam run``, ``vislam demo``) that records the
 #: ``cam_T_imu`` the filter used under ``calibration.cam_T_imu`` (and the data file's under
 #: ``dataset.cam_T_imu``).
@@ -866,10 +877,40 @@ def evaluate_associated(est: TrajectoryFile, gt: TrajectoryFile, dataset_timesta
     assoc = associate(est, gt, dataset_timestamps, max_diff_s)
     info = {**(info or {}), "association": assoc.to_dict()}
     if cam_T_imu is None:
-        return evaluate(assoc.est_world_T_imu, assoc.gt_world_T_imu, assoc.timestamps_s, info=info)
-    gt_cam = assoc.gt_world_T_imu  # camera poses here
-    return evaluate(assoc.est_world_T_imu, camera_to_imu_trajectory(gt_cam, cam_T_imu), assoc.timestamps_s,
-                    info=info, gt_world_T_cam=gt_cam, cam_T_imu=cam_T_imu)
+        result = evaluate(assoc.est_world_T_imu, assoc.gt_world_T_imu, assoc.timestamps_s, info=info)
+    else:
+        gt_cam = assoc.gt_world_T_imu  # camera poses here
+        result = evaluate(assoc.est_world_T_imu, camera_to_imu_trajectory(gt_cam, cam_T_imu), assoc.timestamps_s,
+                          info=info, gt_world_T_cam=gt_cam, cam_T_imu=cam_T_imu)
+    notes = _pairing_notes(assoc, result, est, gt)
+    for note in notes:
+        logger.warning("%s", note)
+    return replace(result, notes=(*notes, *result.notes)) if notes else result
+
+
+def _path_length_m(world_T_body: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(world_T_body[:, :3, 3], axis=0), axis=1).sum())
+
+
+def _pairing_notes(assoc: Association, result: EvaluationResult, est: TrajectoryFile,
+                   gt: TrajectoryFile) -> list[str]:
+    """What makes an evaluation doubtful although it could be computed: a ground truth that
+    covers few of the estimate's poses, or paths whose lengths disagree (see
+    :data:`PATH_LENGTH_RATIO_BOUNDS`)."""
+    notes = []
+    if assoc.n_pairs < MIN_COVERAGE * assoc.n_estimate:
+        notes.append(f"only {assoc.n_pairs} of the estimate's {assoc.n_estimate} poses have a ground-truth pose "
+                     f"({gt.path}: {assoc.n_ground_truth}); the others are not evaluated")
+    gt_m = _path_length_m(result.gt_world_T_imu)
+    if gt_m >= PATH_LENGTH_CHECK_MIN_M:
+        est_m = _path_length_m(result.est_world_T_imu)
+        ratio = est_m / gt_m
+        low, high = PATH_LENGTH_RATIO_BOUNDS
+        if not low <= ratio <= high:
+            notes.append(f"the estimate's path over the compared frames is {est_m:.1f} m, {ratio:.2f}x the ground "
+                         f"truth's {gt_m:.1f} m: is {gt.path} the ground truth of this drive, are the speeds in "
+                         f"m/s, or did the run diverge?")
+    return notes
 
 
 def evaluate_files(
