@@ -309,7 +309,7 @@ def _innovation_terms(P: np.ndarray, rows: np.ndarray, Hp: np.ndarray, Hl: np.nd
     # S = H (Σ Hᵀ) + R: the rows of Σ Hᵀ at the pose and at each observed landmark
     S = Hp.reshape(k * m, POSE_DIM) @ PHt[:POSE_DIM]  # (mk, mk)
     S += (Hl @ PHt[rows]).reshape(k * m, k * m)
-    S[np.diag_indices(k * m)] += np.tile(var, k)  # + I ⊗ R_i (diagonal)
+    S.reshape(-1)[::k * m + 1] += np.tile(var, k)  # + I ⊗ R_i (the diagonal, as a strided view)
     return PHt, np.linalg.cholesky(S)  # S = L Lᵀ (reads the lower triangle)
 
 
@@ -322,7 +322,7 @@ def compress_stereo(r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray
     likelihood up to a constant, hence the same EKF update, with 3k instead of 4k rows.
     Returns (r3, Hp3, Hl3, var3).
     """
-    var = np.diag(V)
+    var = V.diagonal()  # (a read-only view, as np.diag(V) gives, without its dispatch)
     if V[1, 1] != V[3, 3] or np.count_nonzero(V - np.diag(var)):
         return r, Hp, Hl, var  # not applicable: keep the four rows
     r3 = r[:, :3].copy()
@@ -384,11 +384,13 @@ def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
     pose = dx[:POSE_DIM]
     size = float(pose @ np.linalg.solve(P[:POSE_DIM, :POSE_DIM], pose))
     if len(slots):
-        rows = state.landmark_rows(slots)[:, :3]  # (k, 3) position rows
+        rows = state.landmark_rows(slots)
+        if rows.shape[1] != 3:
+            rows = rows[:, :3]  # (k, 3) position rows
         P_ll = P[rows[:, :, None], rows[:, None, :]]
         e = dx[rows]
         q = np.einsum("ki,ki->k", e, np.linalg.solve(P_ll, e[:, :, None])[:, :, 0])
-        size = max(size, float(np.max(q)))
+        size = max(size, q.max().item())  # (the method: np.max's dispatch costs more than the reduction)
     return math.sqrt(max(size, 0.0))
 
 
@@ -446,8 +448,8 @@ def _next_step_size(state: SlamState, slots: np.ndarray, factors: dict, r: np.nd
     step = _step_size(state, slots, gain_times(factors, r - r_prev))
     if step < tolerance:
         return None  # converged: the re-linearization would move the estimate by a negligible step
-    if prev_step is None:  # the size of the step already taken, x_1 − x_0 = K_0 r_0
-        prev_step = _step_size(state, slots, gain_times(factors, r_prev))
+    if prev_step is None:  # the size of the step already taken, x_1 − x_0 = K_0 r_0 (the update's own K r)
+        prev_step = _step_size(state, slots, factors["dx"] if "dx" in factors else gain_times(factors, r_prev))
     if step > prev_step:
         return None  # not contracting: Gauss-Newton would move away; keep the last iterate
     return step
