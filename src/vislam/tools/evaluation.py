@@ -882,18 +882,13 @@ def evaluate_associated(est: TrajectoryFile, gt: TrajectoryFile, dataset_timesta
         gt_cam = assoc.gt_world_T_imu  # camera poses here
         result = evaluate(assoc.est_world_T_imu, camera_to_imu_trajectory(gt_cam, cam_T_imu), assoc.timestamps_s,
                           info=info, gt_world_T_cam=gt_cam, cam_T_imu=cam_T_imu)
-    notes = _pairing_notes(assoc, result, est, gt)
+    notes = _pairing_notes(assoc, result, gt)
     for note in notes:
         logger.warning("%s", note)
     return replace(result, notes=(*notes, *result.notes)) if notes else result
 
 
-def _path_length_m(world_T_body: np.ndarray) -> float:
-    return float(np.linalg.norm(np.diff(world_T_body[:, :3, 3], axis=0), axis=1).sum())
-
-
-def _pairing_notes(assoc: Association, result: EvaluationResult, est: TrajectoryFile,
-                   gt: TrajectoryFile) -> list[str]:
+def _pairing_notes(assoc: Association, result: EvaluationResult, gt: TrajectoryFile) -> list[str]:
     """What makes an evaluation doubtful although it could be computed: a ground truth that
     covers few of the estimate's poses, or paths whose lengths disagree (see
     :data:`PATH_LENGTH_RATIO_BOUNDS`)."""
@@ -901,9 +896,9 @@ def _pairing_notes(assoc: Association, result: EvaluationResult, est: Trajectory
     if assoc.n_pairs < MIN_COVERAGE * assoc.n_estimate:
         notes.append(f"only {assoc.n_pairs} of the estimate's {assoc.n_estimate} poses have a ground-truth pose "
                      f"({gt.path}: {assoc.n_ground_truth}); the others are not evaluated")
-    gt_m = _path_length_m(result.gt_world_T_imu)
+    gt_m = result.path_length_m  # the ground truth's path over the compared frames
     if gt_m >= PATH_LENGTH_CHECK_MIN_M:
-        est_m = _path_length_m(result.est_world_T_imu)
+        est_m = float(trajectory_distances(result.est_world_T_imu)[-1])
         ratio = est_m / gt_m
         low, high = PATH_LENGTH_RATIO_BOUNDS
         if not low <= ratio <= high:
