@@ -45,11 +45,11 @@ def register(subparsers) -> None:
 def run(args) -> int:
     if args.out and Path(args.out).exists() and not Path(args.out).is_dir():  # before seconds of work
         raise OutputError(f"{args.out}: exists and is not a directory (an output directory is expected)")
-    from vislam.cli.common import load_data
+    from vislam.cli.common import load_data, tracking_warnings
 
     args.quiet = getattr(args, "quiet", False) or args.json
     sequence, tracking = load_data(args, args.out)
-    for warning in (tracking or {}).get("statistics", {}).get("warnings", []):  # an image folder's tracks
+    for warning in tracking_warnings(tracking):  # an image folder's tracks
         print(f"vislam check: warning: tracking: {warning}", file=sys.stderr)
     if not args.json:
         say_phase(f"checking {sequence.name}: timestamps, IMU noise and biases, speed units, IMU-camera rotation "

@@ -83,6 +83,11 @@ def load_data(args, cache_dir):
                           velocities=getattr(args, "velocities", None), tracker_options=options,
                           progress_factory=lambda total, desc: make_progress(total, desc, args.quiet))
 
+def tracking_warnings(info) -> list[str]:
+    """The tracker's warnings of what :func:`load_data` returned with the sequence (none for an npz)."""
+    return list((info or {}).get("statistics", {}).get("warnings", []))
+
+
 def _component_group(parser, component: str):
     """A new argument group for the flags of one component of FilterOptions (a key of
     :data:`~vislam.core.options.OPTION_GROUPS`), titled like the options' docs."""

@@ -127,7 +127,7 @@ def format_comparison(comparison, content: dict, out_dir) -> str:
 
 def run(args) -> int:
     from vislam.tools.comparison import dataset_record, parse_methods, run_comparison, runs_of, write_comparison
-    from vislam.cli.common import load_data
+    from vislam.cli.common import load_data, tracking_warnings
     from vislam.tools.outputs import OutputStage, process_start_time
 
     start_time = process_start_time() or _COMMAND_START
@@ -177,7 +177,7 @@ def run(args) -> int:
         return 130
     if not args.quiet:
         _print(format_comparison(comparison, content, stage.out_dir))
-        for warning in (tracking or {}).get("statistics", {}).get("warnings", []):  # an image folder's tracks
+        for warning in tracking_warnings(tracking):  # an image folder's tracks
             print(f"vislam: warning: tracking: {warning}", file=sys.stderr)
         for key, method in content["methods"].items():
             for warning in method.get("warnings") or ():

@@ -41,6 +41,7 @@ from vislam.cli.common import (  # noqa: F401 (the shared pieces, importable fro
     make_progress,
     noise_spec_from_args,
     options_from_args,
+    tracking_warnings,
 )
 from vislam.core.options import MODES
 from vislam.errors import ConfigError
@@ -193,8 +194,7 @@ def run(args) -> int:
                                        on_frame=record_frame(recorder, sequence))
             finally:
                 close()
-            extra["warnings"] = ((tracking or {}).get("statistics", {}).get("warnings", [])
-                                 + run_warnings(result))
+            extra["warnings"] = tracking_warnings(tracking) + run_warnings(result)
             if "timing" in result.extra:  # smoother: its own timings and those of refine
                 extra["timing"] = result.extra["timing"]
             gt_poses = None
