@@ -7,9 +7,13 @@
 texture from scikit-image's sample images (chosen, offset and brightness-scaled by the
 seed). :func:`render_pair` renders the rectified left/right grey images of a frame by
 casting the ray of every pixel onto the planes (nearest hit wins), sampling the
-texture there with ``cv2.remap`` (bilinear, from the mip level of the plane's pixel
-footprint), then blurring (Gaussian, ``blur_sigma_px``) and adding pixel noise
-(``noise_grey_levels``). Everything not on a plane is a featureless sky.
+texture there with ``cv2.remap`` (trilinear: bilinear in the two mip levels around each
+pixel's footprint on the plane, blended by its fractional level, ``lod_bias`` added), so a
+surface's image changes continuously with its distance, then blurring
+(Gaussian, ``blur_sigma_px``) and adding pixel noise (``noise_grey_levels``). Everything
+not on a plane is a featureless sky. Each texture is cropped to a multiple of 2^6 texels
+so that every level of its pyramid is exactly half the one below and the levels show
+the same pattern at the same place (odd sizes would wrap each level with another period).
 
 :func:`surface_point` casts one ray onto the same planes, which is how the tracker's
 observations are graded against the true geometry.
@@ -54,6 +58,10 @@ class RenderOptions:
     noise_grey_levels: float = 1.5
     #: Grey level of the sky (no texture, no corners).
     sky_grey: float = 205.0
+    #: Added to every pixel's mip level (log2 of its footprint F in texels). Level L is the texture
+    #: after L pyrDowns (Gaussian of 1σ ≈ 0.58·2^L texels, with its own texel grid ≈ 0.65·2^L); a
+    #: camera pixel integrates a box of F texels (1σ = F/√12 ≈ 0.29 F): equal at L ≈ log2 F - 1.
+    lod_bias: float = -1.0
     #: Planes farther than this from the camera are not drawn (m).
     max_distance_m: float = 150.0
     #: Extra road beyond the last frame (m), so the end of the drive still looks ahead.
@@ -101,15 +109,66 @@ def _load_texture(name: str) -> np.ndarray:
     return np.clip((image - lo) / max(hi - lo, 1.0), 0, 1).astype(np.float32) * 200.0 + 20.0
 
 
-def _pyramid(image: np.ndarray, levels: int = 7) -> list:
+#: Mip levels of every texture pyramid (level 0 included).
+_MIP_LEVELS = 7
+
+
+def _pyramid(image: np.ndarray, levels: int = _MIP_LEVELS) -> list:
+    """Mip pyramid of a texture cropped to a multiple of 2^(levels-1) texels, so that texel j of
+    level l+1 sits at 2j of level l (``cv2.pyrDown`` keeps the even texels) and every level wraps
+    with the same period in metres."""
     import cv2
 
-    out = [image]
+    m = 2 ** (levels - 1)
+    h, w = (image.shape[0] // m) * m, (image.shape[1] // m) * m
+    if h == 0 or w == 0:
+        raise ValueError(f"texture of {image.shape[0]} x {image.shape[1]} texels is smaller than {m} x {m}")
+    out = [np.ascontiguousarray(image[:h, :w])]
     for _ in range(levels - 1):
-        if min(out[-1].shape) < 8:
-            break
         out.append(cv2.pyrDown(out[-1]))
     return out
+
+
+def _sample_trilinear(pyr: list, s1: np.ndarray, s2: np.ndarray, lod: np.ndarray, texel_m: float,
+                      offset: np.ndarray, cv2) -> np.ndarray:
+    """Texture values at plane coordinates (s1, s2) (m, 1-D): bilinear at mip levels floor(lod)
+    and floor(lod) + 1, blended by lod's fractional part, so the image changes continuously as
+    a surface's distance does."""
+    top = len(pyr) - 1
+    lod = np.minimum(lod, np.float32(top))
+    base = np.minimum(lod.astype(np.int64), top - 1)  # lod >= 0: the cast floors
+    frac = lod - base.astype(np.float32)
+    lo, hi = int(base.min()), int(base.max())
+    if lo == hi:  # the common case: one pair of levels for the whole surface
+        return ((1 - frac) * _sample_level(pyr, lo, s1, s2, texel_m, offset, cv2)
+                + frac * _sample_level(pyr, lo + 1, s1, s2, texel_m, offset, cv2))
+    out = np.empty(s1.shape, np.float32)
+    for level in range(lo, hi + 1):
+        rows = np.flatnonzero(base == level)
+        if rows.size == 0:
+            continue
+        f = frac[rows]
+        out[rows] = ((1 - f) * _sample_level(pyr, level, s1[rows], s2[rows], texel_m, offset, cv2)
+                     + f * _sample_level(pyr, level + 1, s1[rows], s2[rows], texel_m, offset, cv2))
+    return out
+
+
+def _sample_level(pyr: list, level: int, s1: np.ndarray, s2: np.ndarray, texel_m: float, offset: np.ndarray,
+                  cv2) -> np.ndarray:
+    """Bilinear texture values of mip level ``level`` at plane coordinates (s1, s2) (m, 1-D)."""
+    tex = pyr[level]
+    scale = texel_m * 2 ** level
+    th, tw = tex.shape
+    off = offset / 2 ** level % np.array([tw, th])
+    mx = (s1 * np.float32(1 / scale) + np.float32(off[0])) % np.float32(tw)
+    my = (s2 * np.float32(1 / scale) + np.float32(off[1])) % np.float32(th)
+    n = mx.size
+    cols = 4096  # cv2.remap wants maps under 32767 per side
+    pad = -n % cols
+    if pad:
+        mx, my = np.concatenate([mx, np.zeros(pad, np.float32)]), np.concatenate([my, np.zeros(pad, np.float32)])
+    return cv2.remap(tex, mx.reshape(-1, cols), my.reshape(-1, cols), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_WRAP).ravel()[:n]
 
 
 def camera_poses(world_T_imu: np.ndarray, cam_T_imu: np.ndarray) -> np.ndarray:
@@ -266,22 +325,19 @@ def _render_view(scene: Scene, world_T_cam: np.ndarray, K: np.ndarray, o: Render
         if not ok.any():
             continue
         pyr = scene.textures[scene.texture[i]]
-        # mip level from the footprint of one pixel on the plane at its median depth: the distance along
-        # the ray over f, widened by 1/cos of the slant (blur rather than aliasing, which would make texture
-        # patterns that do not move with the surface)
+        # mip level of every pixel from its footprint on the plane: the distance along the ray over f,
+        # widened by 1/cos of the slant (blur rather than aliasing, which would make texture patterns
+        # that do not move with the surface)
         vv, uu = np.nonzero(ok)
-        zm = float(np.median(z[ok]))
-        ray = np.array([(u0 + np.median(uu) - K[0, 2]) / K[0, 0], (v0 + np.median(vv) - K[1, 2]) / K[1, 1], 1.0])
-        cos = abs((R @ scene.normal[i]) @ ray) / np.linalg.norm(ray)
-        footprint = zm * np.linalg.norm(ray) / K[0, 0] / max(cos, 0.05) / scene.texel_m[i]
-        level = int(np.clip(math.floor(math.log2(max(footprint, 1.0))), 0, len(pyr) - 1))
-        tex = pyr[level]
-        scale = scene.texel_m[i] * 2 ** level
-        off = scene.offset[i] / 2 ** level % np.array([tex.shape[1], tex.shape[0]])
-        mx = np.where(ok, s1 * np.float32(1 / scale) + np.float32(off[0]), np.float32(0)) % np.float32(tex.shape[1])
-        my = np.where(ok, s2 * np.float32(1 / scale) + np.float32(off[1]), np.float32(0)) % np.float32(tex.shape[0])
-        values = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-        image[v0:v1, u0:u1][ok] = values[ok] * scene.gain[i]
+        a = (uu + np.float32(u0 - K[0, 2])) * np.float32(1 / K[0, 0])  # the pixel's ray (a, b, 1)
+        b = (vv + np.float32(v0 - K[1, 2])) * np.float32(1 / K[1, 1])
+        n_cam = (R @ scene.normal[i]).astype(np.float32)
+        ray2 = a * a + b * b + np.float32(1)
+        slant = np.maximum(np.abs(a * n_cam[0] + b * n_cam[1] + n_cam[2]), np.float32(0.05) * np.sqrt(ray2))
+        footprint = z[vv, uu] * ray2 / slant * np.float32(1 / (K[0, 0] * scene.texel_m[i]))
+        lod = np.maximum(np.log2(footprint) + np.float32(o.lod_bias), np.float32(0))
+        values = _sample_trilinear(pyr, s1[vv, uu], s2[vv, uu], lod, scene.texel_m[i], scene.offset[i], cv2)
+        image[v0 + vv, u0 + uu] = values * np.float32(scene.gain[i])
         zbuf[v0:v1, u0:u1][ok] = z[ok]
     return image
 
