@@ -556,8 +556,9 @@ class StereoTracker:
         return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def _templates(self, image, pts):
-        """(n, m, 7) float32 per new track: its (2r+1)^2 patch T of ``image`` at ``pts`` and the
-        patch's steepest-descent images dT/dp of the six affine parameters (central differences)."""
+        """(n, m, 8) float32 per new track: the Jacobian of the affine step's residual, the
+        steepest-descent images dT/dp of the six affine parameters (central differences) of its
+        (2r+1)^2 patch T of ``image`` at ``pts``, then T (gain) and 1 (bias); T is ``[..., 6]``."""
         r = self.options.affine_radius_px
         s = 2 * r + 3
         patch = self._sample(image, pts, np.tile(np.eye(2), (pts.shape[0], 1, 1)), self._offsets_ext)
@@ -566,13 +567,23 @@ class StereoTracker:
         Tx = (0.5 * (patch[:, 1:-1, 2:] - patch[:, 1:-1, :-2])).reshape(pts.shape[0], -1)
         Ty = (0.5 * (patch[:, 2:, 1:-1] - patch[:, :-2, 1:-1])).reshape(pts.shape[0], -1)
         x, y = self._offsets[None, :, 0], self._offsets[None, :, 1]
-        return np.stack([T, Tx, Ty, Tx * x, Tx * y, Ty * x, Ty * y], axis=-1).astype(np.float32)
+        return np.stack([Tx, Ty, Tx * x, Tx * y, Ty * x, Ty * y, T, np.ones_like(T)], axis=-1).astype(np.float32)
 
-    def _affine(self, image, templates, pts, A, max_residual=None):
+    @staticmethod
+    def _normal_inverse(jac):
+        """(n, 8, 8) inverse normal matrices (J^T J + 1e-6 I)^-1 of the affine step, fixed per
+        template (inverse compositional); NaN where the batch has a singular one."""
+        H = np.matmul(jac.transpose(0, 2, 1), jac).astype(np.float64) + 1e-6 * np.eye(8)
+        try:
+            return np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            return np.full(H.shape, np.nan)
+
+    def _affine(self, image, templates, pts, A, max_residual=None, normal_inv=None):
         """Inverse-compositional Gauss-Newton of ``image(pts + A x) = g T(x) + c`` per track.
 
         The template's steepest-descent images (:meth:`_templates`) and with them the normal
-        matrix are fixed over the iterations, so each iteration samples the float32 ``image``
+        matrix (``normal_inv``, :meth:`_normal_inverse`; computed here when not given) are fixed, so each iteration samples the float32 ``image``
         once (no image gradients). ``max_residual``: per-track bound on the residual relative to
         the template's contrast (default ``affine_max_residual``). Returns (pts, A, ok, residual)."""
         o = self.options
@@ -581,33 +592,32 @@ class StereoTracker:
             return pts, A, np.zeros(0, bool), np.zeros(0)
         pts = pts.astype(np.float64).copy()
         A = A.astype(np.float64).copy()
-        T_all = templates[..., 0]
-        J = np.concatenate([templates[..., 1:], T_all[..., None], np.ones_like(T_all[..., None])], axis=-1)
-        H = np.matmul(J.transpose(0, 2, 1), J).astype(np.float64) + 1e-6 * np.eye(8)
-        try:
-            H_inv = np.linalg.inv(H)
-        except np.linalg.LinAlgError:
+        J = templates
+        T_all = J[..., 6]
+        H_inv = self._normal_inverse(J) if normal_inv is None else normal_inv
+        if np.isnan(H_inv[:, 0, 0]).any():  # a singular normal matrix in the batch
             return pts, A, np.zeros(n, bool), np.full(n, np.inf)
         gain = np.ones(n, np.float32)
         bias = np.zeros(n, np.float32)
         active = np.arange(n)  # tracks still moving by more than affine_step_px per iteration
         for _ in range(o.affine_iterations):
-            S = self._sample(image, pts[active], A[active])  # (k, m)
-            r = S - gain[active, None] * T_all[active] - bias[active, None]
-            b = np.matmul(r[:, None, :], J[active])  # (k, 1, 8)
-            d = np.matmul(H_inv[active], b.transpose(0, 2, 1).astype(np.float64))[..., 0]
+            sel = active if active.size < n else slice(None)  # all tracks: views instead of copies
+            S = self._sample(image, pts[sel], A[sel])  # (k, m)
+            r = S - gain[sel, None] * T_all[sel] - bias[sel, None]
+            b = np.matmul(r[:, None, :], J[sel])  # (k, 1, 8)
+            d = np.matmul(H_inv[sel], b.transpose(0, 2, 1).astype(np.float64))[..., 0]
             d = np.where(np.isfinite(d), d, 0.0)
-            g = np.maximum(gain[active], 0.1)
+            g = np.maximum(gain[sel], 0.1)
             a, b_, c, e = (d[:, 2 + i] / g for i in range(4))  # dA = I + [[a, b], [c, e]]
             det = (1 + a) * (1 + e) - b_ * c
             det = np.where(np.abs(det) > 1e-3, det, 1.0)
             dA_inv = np.stack([1 + e, -b_, -c, 1 + a], axis=1).reshape(-1, 2, 2) / det[:, None, None]
-            A_new = A[active] @ dA_inv  # W(x; p) o W(x; dp)^-1
+            A_new = A[sel] @ dA_inv  # W(x; p) o W(x; dp)^-1
             step = -np.einsum("kij,kj->ki", A_new, d[:, :2] / g[:, None])
-            pts[active] += step
-            A[active] = A_new
-            gain[active] += d[:, 6]
-            bias[active] += d[:, 7]
+            pts[sel] += step
+            A[sel] = A_new
+            gain[sel] += d[:, 6]
+            bias[sel] += d[:, 7]
             active = active[np.abs(step).max(axis=1) >= o.affine_step_px]
             if active.size == 0:
                 break
@@ -820,10 +830,11 @@ class StereoTracker:
         bound = np.maximum(o.affine_max_residual, o.affine_relative_residual * tracks.residual0)
         soft = bound * max(1.0, o.affine_confirm_factor)
         pl, AL, okl, rl = self._affine(frame["left_f"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0],
-                                       soft)
+                                       soft, tracks.normal_inv)
         guess_r = tracks.pixels[:, 2:] + (pl - tracks.pixels[:, :2]) if o.stereo_tracked_levels > 0 else \
             pl - np.stack([disparity, np.zeros_like(disparity)], axis=1)
-        pr, AR, okr, rr = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1], soft)
+        pr, AR, okr, rr = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1], soft,
+                                       tracks.normal_inv)
         tracks.pixels = np.concatenate([pl, pr], axis=1)
         tracks.warps = np.stack([AL, AR], axis=1)
         tracks.suspect = np.maximum(rl, rr) > bound  # past the bound, within soft: up to the geometric checks
@@ -846,6 +857,7 @@ class StereoTracker:
         if rows.size:
             AL_inv = np.linalg.inv(tracks.warps[rows, 0])
             tracks.templates[rows] = self._templates(frame["left_f"], tracks.pixels[rows, :2])
+            tracks.normal_inv[rows] = self._normal_inverse(tracks.templates[rows])
             tracks.warps[rows, 1] = tracks.warps[rows, 1] @ AL_inv
             tracks.warps[rows, 0] = np.eye(2)
 
@@ -895,10 +907,10 @@ class StereoTracker:
         new = self._detect(frame["left"], tracks.pixels[:, :2])
         st = self.stats
         st.detected += new.shape[0]
-        tpl = np.zeros((new.shape[0], self._offsets.shape[0], 7), np.float32)
+        tpl = np.zeros((new.shape[0], self._offsets.shape[0], 8), np.float32)
         if o.affine_radius_px > 0 and new.shape[0]:
             tpl = self._templates(frame["left_f"], new)
-            contrast = tpl[..., 0].std(axis=1) > 2.0  # not the featureless sky
+            contrast = tpl[..., 6].std(axis=1) > 2.0  # not the featureless sky
             st.rejected_stereo_new += int(np.count_nonzero(~contrast))
             new, tpl = new[contrast], tpl[contrast]
         tried = new
@@ -915,15 +927,17 @@ class StereoTracker:
             stereo, tpl = stereo[stay], tpl[stay]
         A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
         if o.affine_radius_px > 0 and stereo.shape[0]:
-            pr, A[:, 1], okr, res0 = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1])
+            h_inv = self._normal_inverse(tpl)
+            pr, A[:, 1], okr, res0 = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1], None, h_inv)
             stereo = np.concatenate([stereo[:, :2], pr], axis=1)
             aok = okr & self._stereo_ok(stereo)
             st.rejected_stereo_new += int(np.count_nonzero(~aok))
-            stereo, tpl, A, res0 = stereo[aok], tpl[aok], A[aok], res0[aok]
+            stereo, tpl, A, res0, h_inv = stereo[aok], tpl[aok], A[aok], res0[aok], h_inv[aok]
         else:
             res0 = np.zeros(stereo.shape[0])
+            h_inv = np.zeros((stereo.shape[0], 8, 8))
         cap = self._within_need(stereo[:, :2])
-        stereo, tpl, A, res0 = stereo[cap], tpl[cap], A[cap], res0[cap]
+        stereo, tpl, A, res0, h_inv = stereo[cap], tpl[cap], A[cap], res0[cap], h_inv[cap]
         self._rest_cells(tried, stereo[:, :2])
         n = stereo.shape[0]
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
@@ -931,8 +945,8 @@ class StereoTracker:
         ref_T_cam = np.linalg.inv(self._cam_T_ref)
         refs = self._triangulate(stereo) @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]
         cov = ref_T_cam[:3, :3] @ self._point_covariance(stereo) @ ref_T_cam[:3, :3].T
-        return _Tracks(ids, stereo, np.full((n, 4), np.nan), tpl, A, refs, np.full(n, st.frames, np.int64), res0,
-                       cov)
+        return _Tracks(ids, stereo, np.full((n, 4), np.nan), tpl, h_inv, A, refs, np.full(n, st.frames, np.int64),
+                       res0, cov)
 
     def _commit(self, frame, tracks: "_Tracks") -> tuple[np.ndarray, np.ndarray]:
         """Keep this frame's tracks (sorted by id) and its left image for the next one."""
@@ -950,7 +964,8 @@ class _Tracks:
     ids: np.ndarray  # (n,) int64
     pixels: np.ndarray  # (n, 4) [uL, vL, uR, vR] in the current frame
     prev: np.ndarray  # (n, 4) ... in the previous frame (NaN for new tracks)
-    templates: np.ndarray  # (n, m, 7) float32: the first left appearance and its dT/dp (affine step)
+    templates: np.ndarray  # (n, m, 8) float32: the first left appearance's dT/dp, T, 1 (affine step)
+    normal_inv: np.ndarray  # (n, 8, 8): the affine step's inverse normal matrix of each template
     warps: np.ndarray  # (n, 2, 2, 2): left and right affine warps of the template
     refs: np.ndarray  # (n, 3): first triangulation in the first frame's camera (NaN: none)
     born: np.ndarray  # (n,) int64: frame index of the first observation
@@ -964,8 +979,8 @@ class _Tracks:
 
     @classmethod
     def empty(cls, m: int) -> "_Tracks":
-        return cls(np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, m, 7), np.float32),
-                   np.zeros((0, 2, 2, 2)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0),
+        return cls(np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, m, 8), np.float32),
+                   np.zeros((0, 8, 8)), np.zeros((0, 2, 2, 2)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0),
                    np.zeros((0, 3, 3)))
 
     def __len__(self) -> int:
