@@ -582,10 +582,11 @@ class StereoTracker:
     def _affine(self, image, templates, pts, A, max_residual=None, normal_inv=None):
         """Inverse-compositional Gauss-Newton of ``image(pts + A x) = g T(x) + c`` per track.
 
-        The template's steepest-descent images (:meth:`_templates`) and with them the normal
-        matrix (``normal_inv``, :meth:`_normal_inverse`; computed here when not given) are fixed, so each iteration samples the float32 ``image``
-        once (no image gradients). ``max_residual``: per-track bound on the residual relative to
-        the template's contrast (default ``affine_max_residual``). Returns (pts, A, ok, residual)."""
+        The template's steepest-descent images (:meth:`_templates`) and with them the inverse
+        normal matrix (``normal_inv``, :meth:`_normal_inverse`; computed here when not given) are
+        fixed, so each iteration samples the float32 ``image`` once (no image gradients).
+        ``max_residual``: per-track bound on the residual relative to the template's contrast
+        (default ``affine_max_residual``). Returns (pts, A, ok, residual)."""
         o = self.options
         n = pts.shape[0]
         if n == 0:
