@@ -7,13 +7,16 @@
 texture from scikit-image's sample images (chosen, offset and brightness-scaled by the
 seed). :func:`render_pair` renders the rectified left/right grey images of a frame by
 casting the ray of every pixel onto the planes (nearest hit wins), sampling the
-texture there with ``cv2.remap`` (trilinear: bilinear in the two mip levels around each
-pixel's footprint on the plane, blended by its fractional level, ``lod_bias`` added), so a
-surface's image changes continuously with its distance, then blurring
-(Gaussian, ``blur_sigma_px``) and adding pixel noise (``noise_grey_levels``). Everything
-not on a plane is a featureless sky. Each texture is cropped to a multiple of 2^6 texels
-so that every level of its pyramid is exactly half the one below and the levels show
-the same pattern at the same place (odd sizes would wrap each level with another period).
+texture there with ``cv2.remap`` from mip levels kept separately along the texture's two
+axes (a ripmap): each pixel's footprint on the plane gives its level along each axis
+(``lod_bias`` added), and the four levels around it are sampled bilinearly and blended, so a
+surface's image changes continuously with its distance and a slanted surface (the road, a
+façade far ahead) is filtered along its slant only, as a camera pixel integrates its own
+stretched footprint. Then the image is blurred (Gaussian, ``blur_sigma_px``) and pixel
+noise is added (``noise_grey_levels``). Everything not on a plane is a featureless sky.
+Each texture is cropped to a multiple of 2^6 texels so that every level is exactly half
+the one below and the levels show the same pattern at the same place (odd sizes would
+wrap each level with another period).
 
 :func:`surface_point` casts one ray onto the same planes, which is how the tracker's
 observations are graded against the true geometry.
@@ -58,9 +61,10 @@ class RenderOptions:
     noise_grey_levels: float = 1.5
     #: Grey level of the sky (no texture, no corners).
     sky_grey: float = 205.0
-    #: Added to every pixel's mip level (log2 of its footprint F in texels). Level L is the texture
-    #: after L pyrDowns (Gaussian of 1σ ≈ 0.58·2^L texels, with its own texel grid ≈ 0.65·2^L); a
-    #: camera pixel integrates a box of F texels (1σ = F/√12 ≈ 0.29 F): equal at L ≈ log2 F - 1.
+    #: Added to every pixel's mip level along each texture axis (log2 of its footprint's extent F
+    #: in texels along that axis). Level L is the texture halved L times along the axis (a
+    #: Gaussian of 1σ ≈ 0.58·2^L texels, with its own texel grid ≈ 0.65·2^L); a camera pixel
+    #: integrates a box of F texels (1σ = F/√12 ≈ 0.29 F): equal at L ≈ log2 F - 1.
     lod_bias: float = -1.0
     #: Planes farther than this from the camera are not drawn (m).
     max_distance_m: float = 150.0
@@ -109,59 +113,79 @@ def _load_texture(name: str) -> np.ndarray:
     return np.clip((image - lo) / max(hi - lo, 1.0), 0, 1).astype(np.float32) * 200.0 + 20.0
 
 
-#: Mip levels of every texture pyramid (level 0 included).
+#: Mip levels of every texture pyramid, per axis (level 0 included).
 _MIP_LEVELS = 7
 
 
-def _pyramid(image: np.ndarray, levels: int = _MIP_LEVELS) -> list:
-    """Mip pyramid of a texture cropped to a multiple of 2^(levels-1) texels, so that texel j of
-    level l+1 sits at 2j of level l (``cv2.pyrDown`` keeps the even texels) and every level wraps
-    with the same period in metres."""
-    import cv2
+def _halve(image: np.ndarray, axis: int) -> np.ndarray:
+    """The texture filtered along ``axis`` by ``cv2.pyrDown``'s binomial [1 4 6 4 1] / 16 (wrapping
+    around, as the texture tiles) and every other texel kept: texel j of the result sits at 2j."""
+    n = image.shape[axis]
+    pad = np.pad(image, [(2, 2) if a == axis else (0, 0) for a in range(2)], mode="wrap").astype(np.float32)
 
+    def shifted(k):
+        return pad[k:k + n] if axis == 0 else pad[:, k:k + n]
+
+    out = (shifted(0) + shifted(4) + np.float32(4) * (shifted(1) + shifted(3)) + np.float32(6) * shifted(2)) \
+        * np.float32(1 / 16)
+    return np.ascontiguousarray(out[::2] if axis == 0 else out[:, ::2])
+
+
+def _ripmap(image: np.ndarray, levels: int = _MIP_LEVELS) -> list:
+    """Mip levels of a texture, separately along its two axes: ``rip[ly][lx]`` is the texture
+    (cropped to a multiple of 2^(levels-1) texels) halved ``ly`` times along its rows (s2, the
+    image's first axis) and ``lx`` times along its columns (s1). Every level is exactly half the
+    one below along its axis, keeps the even texels and wraps with the same period in metres, so
+    all levels show the same pattern at the same place. Separate levels per axis let a surface
+    seen at a slant keep the detail across the slant (a camera pixel integrates its own
+    footprint, which a slanted surface stretches along one direction only)."""
     m = 2 ** (levels - 1)
     h, w = (image.shape[0] // m) * m, (image.shape[1] // m) * m
     if h == 0 or w == 0:
         raise ValueError(f"texture of {image.shape[0]} x {image.shape[1]} texels is smaller than {m} x {m}")
-    out = [np.ascontiguousarray(image[:h, :w])]
+    row = [np.ascontiguousarray(image[:h, :w], dtype=np.float32)]
     for _ in range(levels - 1):
-        out.append(cv2.pyrDown(out[-1]))
-    return out
+        row.append(_halve(row[-1], 1))
+    rip = [row]
+    for _ in range(levels - 1):
+        rip.append([_halve(t, 0) for t in rip[-1]])
+    return rip
 
 
-def _sample_trilinear(pyr: list, s1: np.ndarray, s2: np.ndarray, lod: np.ndarray, texel_m: float,
-                      offset: np.ndarray, cv2) -> np.ndarray:
-    """Texture values at plane coordinates (s1, s2) (m, 1-D): bilinear at mip levels floor(lod)
-    and floor(lod) + 1, blended by lod's fractional part, so the image changes continuously as
-    a surface's distance does."""
-    top = len(pyr) - 1
-    lod = np.minimum(lod, np.float32(top))
-    base = np.minimum(lod.astype(np.int64), top - 1)  # lod >= 0: the cast floors
-    frac = lod - base.astype(np.float32)
-    lo, hi = int(base.min()), int(base.max())
-    if lo == hi:  # the common case: one pair of levels for the whole surface
-        return ((1 - frac) * _sample_level(pyr, lo, s1, s2, texel_m, offset, cv2)
-                + frac * _sample_level(pyr, lo + 1, s1, s2, texel_m, offset, cv2))
+def _sample_anisotropic(rip: list, s1: np.ndarray, s2: np.ndarray, lod1: np.ndarray, lod2: np.ndarray,
+                        texel_m: float, offset: np.ndarray, cv2) -> np.ndarray:
+    """Texture values at plane coordinates (s1, s2) (m, 1-D) with mip level ``lod1`` along s1 and
+    ``lod2`` along s2 (>= 0): bilinear in each of the four levels around (lod1, lod2), blended
+    bilinearly by their fractional parts, so the image changes continuously as a surface's
+    distance and slant do."""
+    top = len(rip) - 1
+    lod1, lod2 = np.minimum(lod1, np.float32(top)), np.minimum(lod2, np.float32(top))
+    b1, b2 = np.minimum(lod1.astype(np.int64), top - 1), np.minimum(lod2.astype(np.int64), top - 1)  # >= 0: floors
+    f1, f2 = lod1 - b1.astype(np.float32), lod2 - b2.astype(np.float32)
+    key = b2 * top + b1
     out = np.empty(s1.shape, np.float32)
-    for level in range(lo, hi + 1):
-        rows = np.flatnonzero(base == level)
-        if rows.size == 0:
-            continue
-        f = frac[rows]
-        out[rows] = ((1 - f) * _sample_level(pyr, level, s1[rows], s2[rows], texel_m, offset, cv2)
-                     + f * _sample_level(pyr, level + 1, s1[rows], s2[rows], texel_m, offset, cv2))
+    keys = np.unique(key)
+    for k in keys:
+        sel = slice(None) if keys.size == 1 else np.flatnonzero(key == k)  # one level pair: the common case
+        l1, l2 = int(k % top), int(k // top)
+        a1, a2, x, y = f1[sel], f2[sel], s1[sel], s2[sel]
+        low = (1 - a1) * _sample_level(rip, l1, l2, x, y, texel_m, offset, cv2) \
+            + a1 * _sample_level(rip, l1 + 1, l2, x, y, texel_m, offset, cv2)
+        high = (1 - a1) * _sample_level(rip, l1, l2 + 1, x, y, texel_m, offset, cv2) \
+            + a1 * _sample_level(rip, l1 + 1, l2 + 1, x, y, texel_m, offset, cv2)
+        out[sel] = (1 - a2) * low + a2 * high
     return out
 
 
-def _sample_level(pyr: list, level: int, s1: np.ndarray, s2: np.ndarray, texel_m: float, offset: np.ndarray,
-                  cv2) -> np.ndarray:
-    """Bilinear texture values of mip level ``level`` at plane coordinates (s1, s2) (m, 1-D)."""
-    tex = pyr[level]
-    scale = texel_m * 2 ** level
+def _sample_level(rip: list, level1: int, level2: int, s1: np.ndarray, s2: np.ndarray, texel_m: float,
+                  offset: np.ndarray, cv2) -> np.ndarray:
+    """Bilinear texture values of level ``rip[level2][level1]`` at plane coordinates (s1, s2) (m, 1-D)."""
+    tex = rip[level2][level1]
     th, tw = tex.shape
-    off = offset / 2 ** level % np.array([tw, th])
-    mx = (s1 * np.float32(1 / scale) + np.float32(off[0])) % np.float32(tw)
-    my = (s2 * np.float32(1 / scale) + np.float32(off[1])) % np.float32(th)
+    f1, f2 = 2 ** level1, 2 ** level2
+    off1, off2 = offset[0] / f1 % tw, offset[1] / f2 % th
+    mx = (s1 * np.float32(1 / (texel_m * f1)) + np.float32(off1)) % np.float32(tw)
+    my = (s2 * np.float32(1 / (texel_m * f2)) + np.float32(off2)) % np.float32(th)
     n = mx.size
     cols = 4096  # cv2.remap wants maps under 32767 per side
     pad = -n % cols
@@ -209,7 +233,7 @@ def build_scene(world_T_imu, ground_below_imu_m: float, seed: int, options: Rend
     road_names = [_ROAD_TEXTURES[i] for i in rng.permutation(len(_ROAD_TEXTURES))[:2]]
     facade_names = [_FACADE_TEXTURES[i] for i in rng.permutation(len(_FACADE_TEXTURES))[:6]]
     names = road_names + facade_names
-    textures = [_pyramid(_load_texture(n)) for n in names]
+    textures = [_ripmap(_load_texture(n)) for n in names]
     rows = []
     n = pos.shape[0] - 1
     ground = pos - ground_below_imu_m * up
@@ -325,18 +349,20 @@ def _render_view(scene: Scene, world_T_cam: np.ndarray, K: np.ndarray, o: Render
         if not ok.any():
             continue
         pyr = scene.textures[scene.texture[i]]
-        # mip level of every pixel from its footprint on the plane: the distance along the ray over f,
-        # widened by 1/cos of the slant (blur rather than aliasing, which would make texture patterns
-        # that do not move with the surface)
+        # mip level of every pixel along each texture axis from its footprint on the plane: the
+        # Jacobian of (s1, s2) in the pixel (u, v), ds/du = z (H[:2, 0] - s H[2, 0]) and likewise in v;
+        # the footprint's extent along s_i (in texels) is the norm of row i (the 1σ of a pixel's
+        # box mapped onto the plane, times √12), so a slanted surface is filtered across its slant
+        # only as much as a pixel integrates there
         vv, uu = np.nonzero(ok)
-        a = (uu + np.float32(u0 - K[0, 2])) * np.float32(1 / K[0, 0])  # the pixel's ray (a, b, 1)
-        b = (vv + np.float32(v0 - K[1, 2])) * np.float32(1 / K[1, 1])
-        n_cam = (R @ scene.normal[i]).astype(np.float32)
-        ray2 = a * a + b * b + np.float32(1)
-        slant = np.maximum(np.abs(a * n_cam[0] + b * n_cam[1] + n_cam[2]), np.float32(0.05) * np.sqrt(ray2))
-        footprint = z[vv, uu] * ray2 / slant * np.float32(1 / (K[0, 0] * scene.texel_m[i]))
-        lod = np.maximum(np.log2(footprint) + np.float32(o.lod_bias), np.float32(0))
-        values = _sample_trilinear(pyr, s1[vv, uu], s2[vv, uu], lod, scene.texel_m[i], scene.offset[i], cv2)
+        zs, s1p, s2p = z[vv, uu], s1[vv, uu], s2[vv, uu]
+        inv_texel = np.float32(1 / scene.texel_m[i])
+        d1u, d1v = (Hf[0, 0] - s1p * Hf[2, 0]) * zs, (Hf[0, 1] - s1p * Hf[2, 1]) * zs
+        d2u, d2v = (Hf[1, 0] - s2p * Hf[2, 0]) * zs, (Hf[1, 1] - s2p * Hf[2, 1]) * zs
+        bias = np.float32(o.lod_bias)
+        lod1 = np.maximum(np.log2(np.hypot(d1u, d1v) * inv_texel) + bias, np.float32(0))
+        lod2 = np.maximum(np.log2(np.hypot(d2u, d2v) * inv_texel) + bias, np.float32(0))
+        values = _sample_anisotropic(pyr, s1p, s2p, lod1, lod2, scene.texel_m[i], scene.offset[i], cv2)
         image[v0 + vv, u0 + uu] = values * np.float32(scene.gain[i])
         zbuf[v0:v1, u0:u1][ok] = z[ok]
     return image
