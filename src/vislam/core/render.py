@@ -76,7 +76,7 @@ class RenderOptions:
 class Scene:
     """Textured rectangles: origin (Q, 3), unit axes e1, e2 (Q, 3), lengths (Q, 2), unit
     normal (Q, 3), texture index (Q,), texel size (Q,), texture offset (Q, 2) and gain
-    (Q,); textures: mip pyramids (list of lists of float32 images)."""
+    (Q,); textures: one ripmap per texture (``rip[ly][lx]``, float32 images; :func:`_ripmap`)."""
 
     origin: np.ndarray
     e1: np.ndarray
@@ -121,7 +121,7 @@ def _halve(image: np.ndarray, axis: int) -> np.ndarray:
     """The texture filtered along ``axis`` by ``cv2.pyrDown``'s binomial [1 4 6 4 1] / 16 (wrapping
     around, as the texture tiles) and every other texel kept: texel j of the result sits at 2j."""
     n = image.shape[axis]
-    pad = np.pad(image, [(2, 2) if a == axis else (0, 0) for a in range(2)], mode="wrap").astype(np.float32)
+    pad = np.pad(image, [(2, 2) if a == axis else (0, 0) for a in range(2)], mode="wrap").astype(np.float32, copy=False)
 
     def shifted(k):
         return pad[k:k + n] if axis == 0 else pad[:, k:k + n]
@@ -348,7 +348,7 @@ def _render_view(scene: Scene, world_T_cam: np.ndarray, K: np.ndarray, o: Render
         ok &= (z > 0.05) & (z < zbuf[v0:v1, u0:u1]) & (s1 >= 0) & (s1 <= l1) & (s2 >= 0) & (s2 <= l2)
         if not ok.any():
             continue
-        pyr = scene.textures[scene.texture[i]]
+        rip = scene.textures[scene.texture[i]]
         # mip level of every pixel along each texture axis from its footprint on the plane: the
         # Jacobian of (s1, s2) in the pixel (u, v), ds/du = z (H[:2, 0] - s H[2, 0]) and likewise in v;
         # the footprint's extent along s_i (in texels) is the norm of row i (the 1σ of a pixel's
@@ -362,7 +362,7 @@ def _render_view(scene: Scene, world_T_cam: np.ndarray, K: np.ndarray, o: Render
         bias = np.float32(o.lod_bias)
         lod1 = np.maximum(np.log2(np.hypot(d1u, d1v) * inv_texel) + bias, np.float32(0))
         lod2 = np.maximum(np.log2(np.hypot(d2u, d2v) * inv_texel) + bias, np.float32(0))
-        values = _sample_anisotropic(pyr, s1p, s2p, lod1, lod2, scene.texel_m[i], scene.offset[i], cv2)
+        values = _sample_anisotropic(rip, s1p, s2p, lod1, lod2, scene.texel_m[i], scene.offset[i], cv2)
         image[v0 + vv, u0 + uu] = values * np.float32(scene.gain[i])
         zbuf[v0:v1, u0:u1][ok] = z[ok]
     return image

@@ -579,11 +579,11 @@ class StereoTracker:
         except np.linalg.LinAlgError:
             return np.full(H.shape, np.nan)
 
-    def _affine(self, image, templates, pts, A, max_residual=None, normal_inv=None):
+    def _affine(self, image, templates, pts, A, normal_inv, max_residual=None):
         """Inverse-compositional Gauss-Newton of ``image(pts + A x) = g T(x) + c`` per track.
 
         The template's steepest-descent images (:meth:`_templates`) and with them the inverse
-        normal matrix (``normal_inv``, :meth:`_normal_inverse`; computed here when not given) are
+        normal matrix (``normal_inv``, :meth:`_normal_inverse`, kept with the template) are
         fixed, so each iteration samples the float32 ``image`` once (no image gradients).
         ``max_residual``: per-track bound on the residual relative to the template's contrast
         (default ``affine_max_residual``). Returns (pts, A, ok, residual)."""
@@ -595,8 +595,7 @@ class StereoTracker:
         A = A.astype(np.float64).copy()
         J = templates
         T_all = J[..., 6]
-        H_inv = self._normal_inverse(J) if normal_inv is None else normal_inv
-        if np.isnan(H_inv[:, 0, 0]).any():  # a singular normal matrix in the batch
+        if np.isnan(normal_inv[:, 0, 0]).any():  # a singular normal matrix in the batch
             return pts, A, np.zeros(n, bool), np.full(n, np.inf)
         gain = np.ones(n, np.float32)
         bias = np.zeros(n, np.float32)
@@ -606,7 +605,7 @@ class StereoTracker:
             S = self._sample(image, pts[sel], A[sel])  # (k, m)
             r = S - gain[sel, None] * T_all[sel] - bias[sel, None]
             b = np.matmul(r[:, None, :], J[sel])  # (k, 1, 8)
-            d = np.matmul(H_inv[sel], b.transpose(0, 2, 1).astype(np.float64))[..., 0]
+            d = np.matmul(normal_inv[sel], b.transpose(0, 2, 1).astype(np.float64))[..., 0]
             d = np.where(np.isfinite(d), d, 0.0)
             g = np.maximum(gain[sel], 0.1)
             a, b_, c, e = (d[:, 2 + i] / g for i in range(4))  # dA = I + [[a, b], [c, e]]
@@ -831,11 +830,11 @@ class StereoTracker:
         bound = np.maximum(o.affine_max_residual, o.affine_relative_residual * tracks.residual0)
         soft = bound * max(1.0, o.affine_confirm_factor)
         pl, AL, okl, rl = self._affine(frame["left_f"], tracks.templates, tracks.pixels[:, :2], tracks.warps[:, 0],
-                                       soft, tracks.normal_inv)
+                                       tracks.normal_inv, soft)
         guess_r = tracks.pixels[:, 2:] + (pl - tracks.pixels[:, :2]) if o.stereo_tracked_levels > 0 else \
             pl - np.stack([disparity, np.zeros_like(disparity)], axis=1)
-        pr, AR, okr, rr = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1], soft,
-                                       tracks.normal_inv)
+        pr, AR, okr, rr = self._affine(frame["right_f"], tracks.templates, guess_r, tracks.warps[:, 1],
+                                       tracks.normal_inv, soft)
         tracks.pixels = np.concatenate([pl, pr], axis=1)
         tracks.warps = np.stack([AL, AR], axis=1)
         tracks.suspect = np.maximum(rl, rr) > bound  # past the bound, within soft: up to the geometric checks
@@ -929,7 +928,7 @@ class StereoTracker:
         A = np.tile(np.eye(2), (stereo.shape[0], 2, 1, 1))
         if o.affine_radius_px > 0 and stereo.shape[0]:
             h_inv = self._normal_inverse(tpl)
-            pr, A[:, 1], okr, res0 = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1], None, h_inv)
+            pr, A[:, 1], okr, res0 = self._affine(frame["right_f"], tpl, stereo[:, 2:], A[:, 1], h_inv)
             stereo = np.concatenate([stereo[:, :2], pr], axis=1)
             aok = okr & self._stereo_ok(stereo)
             st.rejected_stereo_new += int(np.count_nonzero(~aok))
