@@ -642,3 +642,56 @@ def test_adjoint_block_layout():
     np.testing.assert_array_equal(Ad[3:, 3:], R)
     np.testing.assert_array_equal(Ad[3:, :3], 0.0)
     assert_close(Ad[:3, 3:], so3_hat(p) @ R, 1e-15, "p^ R block")
+
+
+# ----------------------------------------------------------------------------- quaternions
+
+
+@pytest.mark.parametrize("regime", REGIMES)
+@PROPERTY
+@given(data=st.data())
+def test_quaternions_match_scipy_and_round_trip(regime, data):
+    """quaternion_from_rotation is scipy's Rotation.from_matrix (the same sign too) and
+    rotation_from_quaternion its inverse, to rounding, at every angle, π included."""
+    from scipy.spatial.transform import Rotation
+
+    from vislam.core.lie import quaternion_from_rotation, rotation_from_quaternion
+
+    phi = data.draw(rotvecs(regime, (7,)))
+    R = so3_exp(phi)
+    q = quaternion_from_rotation(R)
+    np.testing.assert_allclose(q, Rotation.from_matrix(R).as_quat(), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, rtol=0, atol=4 * EPS)
+    np.testing.assert_allclose(rotation_from_quaternion(q), R, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(rotation_from_quaternion(-3.0 * q), R, rtol=0, atol=1e-14)  # any scale, either sign
+
+
+def test_quaternion_of_a_not_quite_orthogonal_matrix_is_its_nearest_rotation():
+    """A rotation perturbed by 1e-9 (a pose printed with 9 digits) gives the quaternion of
+    its nearest rotation, as scipy does, not of the raw entries."""
+    from scipy.spatial.transform import Rotation
+
+    from vislam.core.lie import quaternion_from_rotation
+
+    rng = np.random.default_rng(3)
+    R = so3_exp(rng.normal(size=(20, 3))) + 1e-9 * rng.normal(size=(20, 3, 3))
+    np.testing.assert_allclose(quaternion_from_rotation(R), Rotation.from_matrix(R).as_quat(), rtol=0, atol=1e-13)
+
+
+def test_so3_log_near_pi_matches_scipy():
+    """Past 3 rad so3_log goes through the quaternion; it agrees with scipy's rotvec up to
+    the axis sign that θ = π leaves free."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    axis = rng.normal(size=(50, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    theta = np.concatenate([np.linspace(3.0, math.pi, 49), [0.0]])  # one exact identity in the batch
+    phi = theta[:, None] * axis
+    R = so3_exp(phi)
+    got, ref = so3_log(R), Rotation.from_matrix(R).as_rotvec()
+    near_pi = np.pi - theta < 1e-7
+    np.testing.assert_allclose(got[~near_pi], ref[~near_pi], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got[~near_pi], phi[~near_pi], rtol=0, atol=1e-7)
+    sign = np.sign(np.einsum("ki,ki->k", got[near_pi], ref[near_pi]))
+    np.testing.assert_allclose(got[near_pi] * sign[:, None], ref[near_pi], rtol=0, atol=1e-12)

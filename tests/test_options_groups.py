@@ -189,3 +189,25 @@ def test_sweep_specs_take_nested_option_sets(tmp_path):
     with pytest.raises(ConfigError, match="did you mean 'velocity_mps'"):
         parse_spec({"datasets": ["a.npz"], "options": {"bad": {"noise": {"velocity": 0.5}}}}, source="spec.yaml",
                    base_dir=tmp_path)
+
+
+def test_chi2_4_gate_is_scipys_quantile_and_inverts_the_survival_function():
+    """The gate is the p-quantile of χ²₄: it agrees with scipy.special.chdtri(4, 1 − p)
+    to rounding over the gate probabilities in use, and the closed-form survival function
+    e^(−x/2) (1 + x/2) at it gives back 1 − p (accurate where chdtri's 1 − p is not)."""
+    import math
+
+    import numpy as np
+    from scipy.special import chdtri
+
+    from vislam.core.options import FilterOptions, _chi2_4_quantile
+
+    for p in np.concatenate([np.linspace(0.01, 0.999999, 2001), [0.9, 0.95, 0.99, 0.999]]):
+        x = _chi2_4_quantile(float(p))
+        assert x == pytest.approx(float(chdtri(4, 1.0 - p)), rel=1e-13, abs=0.0)
+    for p in (1e-9, 1e-4, 0.3, 0.95, 1.0 - 1e-9):
+        x = _chi2_4_quantile(p)
+        assert math.exp(-x / 2) * (1 + x / 2) == pytest.approx(1.0 - p, rel=1e-12, abs=0.0)
+    assert _chi2_4_quantile(None) == math.inf and _chi2_4_quantile(1.0) == math.inf
+    assert _chi2_4_quantile(0.0) == 0.0
+    assert FilterOptions(gating_probability=0.95).gate_threshold == pytest.approx(9.487729036781154, rel=1e-15)

@@ -51,6 +51,8 @@ __all__ = [
     "se3_odot",
     "make_pose",
     "is_rigid_transform",
+    "quaternion_from_rotation",
+    "rotation_from_quaternion",
 ]
 
 #: Below this rotation angle (rad) the Taylor branches are used.
@@ -125,7 +127,7 @@ def so3_log(R) -> np.ndarray:
     w = (R − Rᵀ)^∨ / 2 = sin θ · axis, and φ = θ / sin θ · w (series 1 + θ²/6 + 7θ⁴/360
     below SMALL_ANGLE) — accurate to rounding and ~20x faster than scipy for one matrix.
     Closer to π, where sin θ vanishes and the axis must come from the symmetric part,
-    scipy's quaternion-based conversion, accurate for every angle.
+    through the quaternion (:func:`quaternion_from_rotation`), accurate for every angle.
     """
     R = _as_float(R)
     lead = R.shape[:-2]
@@ -142,10 +144,65 @@ def so3_log(R) -> np.ndarray:
         small = theta < SMALL_ANGLE
         factor = np.where(small, 1.0 + t2 / 6.0 + 7.0 * t2 * t2 / 360.0, theta / np.where(small, 1.0, s))
         return (factor[:, None] * w).reshape(lead + (3,))
-    from scipy.spatial.transform import Rotation  # lazy: keeps `import vislam` light
+    q = quaternion_from_rotation(flat)
+    q = np.where(q[:, 3:] < 0.0, -q, q)  # w ≥ 0: θ = 2 atan2(|q_v|, w) in [0, π]
+    qv = q[:, :3]
+    n = np.linalg.norm(qv, axis=-1)
+    angle = 2.0 * np.arctan2(n, q[:, 3])
+    # θ / sin(θ/2) = 2 (1 + θ²/24 + 7θ⁴/5760) below SMALL_ANGLE
+    a2 = angle * angle
+    small = angle < SMALL_ANGLE
+    scale = np.where(small, 2.0 * (1.0 + a2 / 24.0 + 7.0 * a2 * a2 / 5760.0), angle / np.where(small, 1.0, n))
+    return (scale[:, None] * qv).reshape(lead + (3,))
 
-    rotvec = Rotation.from_matrix(flat).as_rotvec()
-    return rotvec.reshape(lead + (3,))
+
+def quaternion_from_rotation(R) -> np.ndarray:
+    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions ``[x, y, z, w]``.
+
+    The Shepperd–Markley method (scipy's ``Rotation.from_matrix``): the largest of
+    ``1 + tr R`` and ``1 − tr R + 2 R_ii`` chooses which component is computed from the
+    diagonal, so that no division by a vanishing number occurs at any angle. A matrix
+    that is not orthogonal to 1e-12 is first replaced by its nearest rotation (``U Vᵀ``
+    of its SVD), as scipy does. The sign is the one the chosen component's formula gives
+    (q and −q are the same rotation)."""
+    R = _as_float(R)
+    lead = R.shape[:-2]
+    M = R.reshape(-1, 3, 3).copy()
+    gram = M @ np.swapaxes(M, -1, -2)
+    off = ~np.all(np.isclose(gram, np.eye(3), rtol=1e-5, atol=1e-12), axis=(-2, -1))
+    if off.any():
+        U, _, Vt = np.linalg.svd(M[off])
+        M[off] = U @ Vt
+    tr = M[:, 0, 0] + M[:, 1, 1] + M[:, 2, 2]
+    choice = np.argmax(np.stack([M[:, 0, 0], M[:, 1, 1], M[:, 2, 2], tr], axis=-1), axis=-1)
+    q = np.empty((M.shape[0], 4))
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        sel = choice == i
+        Ms = M[sel]
+        q[sel, i] = 1.0 - tr[sel] + 2.0 * Ms[:, i, i]
+        q[sel, j] = Ms[:, j, i] + Ms[:, i, j]
+        q[sel, k] = Ms[:, k, i] + Ms[:, i, k]
+        q[sel, 3] = Ms[:, k, j] - Ms[:, j, k]
+    sel = choice == 3
+    Ms = M[sel]
+    q[sel] = np.stack([Ms[:, 2, 1] - Ms[:, 1, 2], Ms[:, 0, 2] - Ms[:, 2, 0], Ms[:, 1, 0] - Ms[:, 0, 1],
+                       1.0 + tr[sel]], axis=-1)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return q.reshape(lead + (4,))
+
+
+def rotation_from_quaternion(q) -> np.ndarray:
+    """(..., 4) quaternions ``[x, y, z, w]`` (normalized here) -> (..., 3, 3) rotations."""
+    q = _as_float(q)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.stack([
+        x * x - y * y - z * z + w * w, 2.0 * (x * y - z * w), 2.0 * (x * z + y * w),
+        2.0 * (x * y + z * w), -x * x + y * y - z * z + w * w, 2.0 * (y * z - x * w),
+        2.0 * (x * z - y * w), 2.0 * (y * z + x * w), -x * x - y * y + z * z + w * w,
+    ], axis=-1)
+    return R.reshape(q.shape[:-1] + (3, 3))
 
 
 def so3_left_jacobian(phi) -> np.ndarray:

@@ -471,11 +471,26 @@ def nest_options(flat: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
 
 
 def _chi2_4_quantile(p: float | None) -> float:
+    """The p-quantile of χ² with 4 degrees of freedom (the gate of a stereo observation).
+
+    Its survival function is closed-form, Q(x) = e^(−x/2) (1 + x/2): with y = x/2 the
+    quantile solves y − log(1 + y) = −log(1 − p), increasing and convex in y > 0, so
+    Newton's method from any y > 0 converges (monotonically after the first step) — to
+    rounding, as scipy.special.chdtri(4, 1 − p) (without importing scipy.special, 40 ms)."""
     if p is None:
         return math.inf
-    from scipy.special import chdtri  # inverse survival function of chi-square
-
-    return float(chdtri(4, 1.0 - p))
+    if p >= 1.0:
+        return math.inf
+    c = -math.log1p(-p)
+    if c <= 0.0:
+        return 0.0
+    y = c + math.log1p(c) + math.sqrt(2.0 * c)  # right of the root, or its first step is
+    for _ in range(100):
+        step = (y - math.log1p(y) - c) * (1.0 + y) / y  # h / h',  h' = y / (1 + y)
+        y -= step
+        if abs(step) <= 4e-16 * y:
+            break
+    return 2.0 * y
 
 
 def _axis_array(value) -> np.ndarray:

@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from vislam.errors import GroundTruthError
+from vislam.core.lie import quaternion_from_rotation, rotation_from_quaternion
+from vislam.tools.atomic import write_text_atomic
 
 #: Ground-truth formats and frames understood by the evaluation (vislam.tools.evaluation).
 GT_FORMATS = ("kitti", "tum")
@@ -71,12 +73,6 @@ def imu_to_camera_trajectory(world_T_imu, cam_T_imu) -> np.ndarray:
 DEFAULT_MAX_DIFF_S = 0.02
 
 
-def _rotation():
-    """scipy's Rotation, imported on first use (keeps `import vislam` light)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation
-from vislam.tools.atomic import write_text_atomic
 
 __all__ = [
     "GT_FORMATS",
@@ -136,7 +132,7 @@ def format_tum(timestamps_s, world_T_body) -> str:
         raise ValueError("one timestamp per pose is required")
     if not np.all(np.isfinite(ts)):
         raise ValueError("timestamps contain non-finite values")
-    quat_xyzw = _rotation().from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
+    quat_xyzw = quaternion_from_rotation(poses[:, :3, :3]) if len(poses) else np.zeros((0, 4))
     table = np.column_stack([ts, poses[:, :3, 3], quat_xyzw])
     return _format_rows(table)
 
@@ -295,7 +291,7 @@ def _tum_from_table(path: Path, table: np.ndarray, lines: np.ndarray) -> tuple[n
             "TUM timestamps must be strictly increasing"
         )
     poses = np.zeros((table.shape[0], 4, 4))
-    poses[:, :3, :3] = _rotation().from_quat(q / norms[:, None]).as_matrix()
+    poses[:, :3, :3] = rotation_from_quaternion(q / norms[:, None])
     poses[:, :3, 3] = table[:, 1:4]
     poses[:, 3, 3] = 1.0
     return ts, poses
