@@ -49,6 +49,17 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from vislam.tools.figure_process import start_figure_process
+
+    figures = start_figure_process()  # imports matplotlib while this process simulates and filters
+    try:
+        return _run(args, figures)
+    finally:
+        if figures is not None:
+            figures.close()
+
+
+def _run(args, figures) -> int:
     from vislam.core.estimators import run as run_estimator
     from vislam.core.options import FilterOptions
     from vislam.core.simulate import SimulationOptions, simulate_drive
@@ -75,7 +86,8 @@ def run(args) -> int:
                        "duration_s": seq.duration_s, "cam_T_imu": seq.cam_T_imu.tolist(),
                        "simulation": sim_options.to_dict()}
             summary = write_demo_outputs(stage, slam, localization, drive.world_T_imu, dataset=dataset,
-                                         duration_s=seq.duration_s, start_time=start_time)
+                                         duration_s=seq.duration_s, start_time=start_time,
+                                         plot=figures.plot_trajectory_map if figures is not None else None)
     except KeyboardInterrupt:
         close()
         print(interrupted_message("demo", stage), file=sys.stderr)

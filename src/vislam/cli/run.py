@@ -143,6 +143,19 @@ def open_rerun_recorder(args, sequence):
 
 
 def run(args) -> int:
+    from vislam.tools.figure_process import start_figure_process
+
+    # The trajectory figure's helper process imports matplotlib while this one filters
+    # (with --gt the evaluation's figure imports it here anyway).
+    figures = None if getattr(args, "gt", None) else start_figure_process()
+    try:
+        return _run(args, figures)
+    finally:
+        if figures is not None:
+            figures.close()
+
+
+def _run(args, figures) -> int:
     from vislam.core.estimators import run as run_estimator
     from vislam.core.results import run_warnings
     from vislam.tools.comparison import evaluate_run, injected_noise_record, stage_evaluation
@@ -205,7 +218,8 @@ def run(args) -> int:
                     stage.staging, evaluation, f"{display_name(dataset)} — {method_title(result)} vs ground truth",
                     ground_truth=gt_info)
             summary = write_run_outputs(stage, result, dataset=dataset, duration_s=sequence.duration_s,
-                                        start_time=start_time, extra=extra, ground_truth=gt_poses)
+                                        start_time=start_time, extra=extra, ground_truth=gt_poses,
+                                        plot=figures.plot_trajectory_map if figures is not None else None)
         if recorder is not None:
             recorder.close()  # the .rrd appears only after the other outputs
     except BaseException as exc:

@@ -623,8 +623,9 @@ def _figure_subtitle(result: RunResult, extra: str | None = None) -> str:
 
 
 def _write_common(stage: OutputStage, result: RunResult, dataset_name: str, curves, subtitle_extra: str | None,
-                  ply_comments: Iterable[str]) -> dict:
-    from vislam.tools.plotting import plot_trajectory_map
+                  ply_comments: Iterable[str], plot=None) -> dict:
+    if plot is None:
+        from vislam.tools.plotting import plot_trajectory_map as plot
 
     write_tum(stage.path(TRAJECTORY_TUM), result.timestamps_s, result.world_T_imu)
     write_kitti(stage.path(TRAJECTORY_KITTI), result.world_T_imu)
@@ -634,8 +635,8 @@ def _write_common(stage: OutputStage, result: RunResult, dataset_name: str, curv
     title = f"{dataset_name} — {method_title(result)}"
     if result.partial:
         title += " (partial)"
-    return plot_trajectory_map(stage.path(FIGURE), curves, result.landmarks, title=title,
-                               subtitle=_figure_subtitle(result, subtitle_extra))
+    return plot(stage.path(FIGURE), curves, result.landmarks, title=title,
+                subtitle=_figure_subtitle(result, subtitle_extra))
 
 
 _COMMIT_ORDER = (TRAJECTORY_TUM, TRAJECTORY_KITTI, ONLINE_TUM, SMOOTHER_TUM, LANDMARKS_NPZ, LANDMARKS_PLY, FIGURE,
@@ -644,12 +645,14 @@ _COMMIT_ORDER = (TRAJECTORY_TUM, TRAJECTORY_KITTI, ONLINE_TUM, SMOOTHER_TUM, LAN
 
 def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping[str, Any], duration_s: float,
                       start_time: float | None, extra: Mapping[str, Any] | None = None,
-                      ground_truth: np.ndarray | None = None) -> dict[str, Any]:
+                      ground_truth: np.ndarray | None = None, plot=None) -> dict[str, Any]:
     """Write the outputs of ``vislam run`` for ``result`` into ``stage`` and commit them.
 
     ``dataset`` (``name`` and ``path`` at least) goes into summary.json and the figure's
     title. ``ground_truth`` ((n, 4, 4) world_T_imu, e.g. the evaluation's) is drawn in
-    the figure. Returns the summary written.
+    the figure. ``plot`` draws the figure (default
+    :func:`vislam.tools.plotting.plot_trajectory_map`; the CLI passes a
+    :class:`~vislam.tools.figure_process.FigureProcess`'s). Returns the summary written.
     """
     from vislam.tools.plotting import TrajectoryCurve
 
@@ -673,7 +676,7 @@ def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping
         curves.insert(0, TrajectoryCurve(np.asarray(ground_truth), "ground truth", color="0.25", linewidth=3.2,
                                          zorder=2, mark_ends=False))
     view = _write_common(stage, result, name, curves, None,
-                         [f"vislam landmarks of {name} ({result.mode})"])
+                         [f"vislam landmarks of {name} ({result.mode})"], plot)
     extra = {**(extra or {}), "landmarks_outside_figure": view["landmarks_outside_view"]}
     summary = build_summary(result, dataset=dataset, duration_s=duration_s, start_time=start_time,
                             outputs=stage.staged() + [SUMMARY], extra=extra)
@@ -684,10 +687,11 @@ def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping
 
 def write_demo_outputs(stage: OutputStage, slam: RunResult, localization: RunResult, true_world_T_imu: np.ndarray,
                        *, dataset: Mapping[str, Any], duration_s: float, start_time: float | None,
-                       extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                       extra: Mapping[str, Any] | None = None, plot=None) -> dict[str, Any]:
     """Write the outputs of ``vislam demo`` into ``stage`` and commit them: those of a
     SLAM run, plus the ground truth, the localization trajectory, and in summary.json
     the ATE of SLAM and of localization against the truth. Returns the summary.
+    ``plot``: as for :func:`write_run_outputs`.
 
     ``dataset["cam_T_imu"]`` (4x4) is required: ``groundtruth.kitti`` holds camera poses.
     """
@@ -710,7 +714,7 @@ def write_demo_outputs(stage: OutputStage, slam: RunResult, localization: RunRes
         return "n/a" if x is None else f"{x:.2f} m"
 
     view = _write_common(stage, slam, name, curves, f"ATE: SLAM {fmt(ate_slam)}, localization {fmt(ate_loc)}",
-                         [f"vislam demo landmarks of {name} (slam)"])
+                         [f"vislam demo landmarks of {name} (slam)"], plot)
     timestamps = localization.timestamps_s  # every frame (SLAM's may stop early)
     write_tum(stage.path(GROUNDTRUTH_TUM), timestamps, true_world_T_imu)
     write_kitti(stage.path(GROUNDTRUTH_KITTI), imu_to_camera_trajectory(true_world_T_imu, dataset["cam_T_imu"]))

@@ -1,0 +1,96 @@
+"""The trajectory figure's helper process (vislam.tools.figure_process) draws the very PNG
+this process draws, and a helper that is gone or broken costs the figure nothing: it is
+drawn here instead."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vislam.core.lie import se3_exp
+from vislam.tools import plotting
+from vislam.tools.figure_process import FigureProcess, _decode, _encode
+from vislam.tools.plotting import TrajectoryCurve
+
+
+class _Map:
+    def __init__(self, p, status):
+        self.p_lm_in_world, self.status = p, status
+
+    def __len__(self):
+        return len(self.p_lm_in_world)
+
+
+@pytest.fixture(scope="module")
+def call():
+    """A figure's arguments: a curving drive with its ground truth, landmarks (some rejected,
+    some far outside the view) and a non-ASCII title."""
+    rng = np.random.default_rng(3)
+    steps = np.zeros((120, 6))
+    steps[:, 0], steps[:, 5] = 1.0, 0.02
+    world_T_imu = np.empty((121, 4, 4))
+    world_T_imu[0] = np.eye(4)
+    for i, T in enumerate(se3_exp(steps)):
+        world_T_imu[i + 1] = world_T_imu[i] @ T
+    truth = world_T_imu.copy()
+    truth[:, :3, 3] += rng.normal(0, 0.5, (121, 3))
+    curves = [TrajectoryCurve(truth, "ground truth", color="0.25", linewidth=3.2, zorder=2, mark_ends=False),
+              TrajectoryCurve(world_T_imu, "trajectory")]
+    p = np.concatenate([rng.uniform(-20, 80, (300, 3)), [[5000.0, 0.0, 0.0]]])
+    status = (rng.uniform(size=301) < 0.1).astype(np.int8)
+    return curves, _Map(p, status), "sparse/0027.npz — Visual-inertial SLAM", "120 frames · 301 landmarks"
+
+
+def test_the_wire_format_carries_the_call_unchanged(call, tmp_path):
+    curves, lm, title, subtitle = call
+    path, curves2, lm2, title2, subtitle2 = _decode(_encode(tmp_path / "f.png", curves, lm, title, subtitle))
+    assert path == str((tmp_path / "f.png").resolve()) and (title2, subtitle2) == (title, subtitle)
+    assert len(curves2) == len(curves)
+    for a, b in zip(curves, curves2):
+        assert (a.label, a.color, a.linestyle, a.linewidth, a.zorder, a.mark_ends) == \
+               (b.label, b.color, b.linestyle, b.linewidth, b.zorder, b.mark_ends)
+        np.testing.assert_array_equal(a.world_T_imu, b.world_T_imu)
+    np.testing.assert_array_equal(lm2.p_lm_in_world, lm.p_lm_in_world)
+    np.testing.assert_array_equal(lm2.status, lm.status)
+    assert _decode(_encode(tmp_path / "g.png", curves, None, "", None))[2] is None
+
+
+def test_the_helper_draws_the_png_this_process_draws(call, tmp_path, monkeypatch):
+    curves, lm, title, subtitle = call
+    here = plotting.plot_trajectory_map(tmp_path / "here.png", curves, lm, title=title, subtitle=subtitle)
+
+    def not_here(*args, **kwargs):  # the helper must answer: no fallback to this process
+        raise AssertionError("drawn in this process")
+
+    monkeypatch.setattr(plotting, "plot_trajectory_map", not_here)
+    with FigureProcess() as helper:
+        there = helper.plot_trajectory_map(tmp_path / "there.png", curves, lm, title=title, subtitle=subtitle)
+    assert there == here and there["landmarks_outside_view"] >= 1
+    assert (tmp_path / "there.png").read_bytes() == (tmp_path / "here.png").read_bytes()
+
+
+def test_a_helper_that_is_gone_or_broken_costs_nothing(call, tmp_path, monkeypatch):
+    curves, lm, title, subtitle = call
+    expected = plotting.plot_trajectory_map(tmp_path / "ref.png", curves, lm, title=title, subtitle=subtitle)
+    killed = FigureProcess()
+    killed._proc.kill()
+    assert killed.plot_trajectory_map(tmp_path / "a.png", curves, lm, title=title, subtitle=subtitle) == expected
+    closed = FigureProcess()
+    closed.close()
+    assert closed.plot_trajectory_map(tmp_path / "b.png", curves, lm, title=title, subtitle=subtitle) == expected
+    # a helper that fails (here: it cannot decode the call) exits non-zero: drawn here
+    monkeypatch.setattr("vislam.tools.figure_process._encode", lambda *a: b"not an npz archive")
+    broken = FigureProcess()
+    assert broken.plot_trajectory_map(tmp_path / "c.png", curves, lm, title=title, subtitle=subtitle) == expected
+    for name in ("a", "b", "c"):
+        assert (tmp_path / f"{name}.png").read_bytes() == (tmp_path / "ref.png").read_bytes()
+    assert broken._proc is None and killed._proc is None
+
+
+def test_closing_an_unused_helper_ends_it(tmp_path):
+    helper = FigureProcess()
+    proc = helper._proc
+    helper.close()
+    assert proc.poll() is not None and helper._proc is None
+    helper.close()  # twice: nothing to do
+    assert list(tmp_path.iterdir()) == []
