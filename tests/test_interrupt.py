@@ -61,16 +61,39 @@ def _sigint_default():
         signal.signal(signal.SIGINT, previous)
 
 
+def _processes_marked(marker: str) -> list[int]:
+    """Pids of the processes whose environment holds ``marker`` (a run and the helper
+    process it started for its figure, vislam.tools.figure_process, inherit it)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/environ", "rb") as f:
+                    if marker.encode() in f.read():
+                        found.append(int(entry))
+            except OSError:  # gone meanwhile, or not ours
+                pass
+    return found
+
+
+def _marked_env(tmp_path) -> tuple[dict, str]:
+    marker = f"VISLAM_TEST_MARK={tmp_path.name}-{os.getpid()}-{time.monotonic_ns()}"
+    return {**os.environ, marker.split("=")[0]: marker.split("=")[1]}, marker
+
+
 @pytest.mark.skipif(os.name != "posix", reason="SIGINT delivery")
 @pytest.mark.parametrize("delay_s", [0.1, 0.2, 0.3, 0.5, 0.8, 1.5, 3.0])
 def test_sigint_leaves_all_or_nothing(dataset, tmp_path, delay_s):
     out = tmp_path / "out"
+    env, marker = _marked_env(tmp_path)
     with _sigint_default():
         proc = subprocess.Popen([sys.executable, "-m", "vislam", "run", str(dataset), "--mode", "slam", "--out",
-                                 str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                 str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env=env)
     time.sleep(delay_s)
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=120)
+    assert _processes_marked(marker) == []  # the figure's helper process ended with the run
     if _before_vislam_started(stderr):  # a loaded machine can take 0.1 s to start Python itself
         assert not out.exists()
         return
@@ -84,6 +107,30 @@ def test_sigint_leaves_all_or_nothing(dataset, tmp_path, delay_s):
         assert len(stderr.strip().splitlines()) == 1 and "interrupt" in stderr.lower()
         assert present in (set(), EXPECTED | present) and (not present or EXPECTED <= present)
         assert not [p for p in present if p.startswith(".")]  # no staging debris
+
+
+@pytest.mark.skipif(os.name != "posix", reason="SIGINT delivery")
+def test_ctrl_c_to_the_process_group_ends_the_run_and_its_figure_helper(dataset, tmp_path):
+    """A terminal's Ctrl-C reaches every process of the group: the run and the helper
+    process drawing its figure. The helper ignores it; the run reports the interrupt in
+    one line and ends the helper."""
+    out = tmp_path / "out"
+    env, marker = _marked_env(tmp_path)
+    with _sigint_default():
+        proc = subprocess.Popen([sys.executable, "-m", "vislam", "run", str(dataset), "--mode", "slam", "--out",
+                                 str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env=env, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while len(_processes_marked(marker)) < 2 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)  # until the helper has started
+    assert len(_processes_marked(marker)) == 2, "no helper process for the figure"
+    time.sleep(0.3)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    assert _processes_marked(marker) == []
+    assert "Traceback" not in stderr
+    assert proc.returncode == 130 and not out.exists()
+    assert len(stderr.strip().splitlines()) == 1 and stderr.startswith("vislam run: interrupted")
 
 
 @pytest.mark.skipif(os.name != "posix", reason="process exit codes")
