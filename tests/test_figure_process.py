@@ -64,6 +64,7 @@ def test_the_helper_draws_the_png_this_process_draws(call, tmp_path, monkeypatch
 
     monkeypatch.setattr(plotting, "plot_trajectory_map", not_here)
     with FigureProcess() as helper:
+        assert helper.start(only_if_useful=False)
         there = helper.plot_trajectory_map(tmp_path / "there.png", curves, lm, title=title, subtitle=subtitle)
     assert there == here and there["landmarks_outside_view"] >= 1
     assert (tmp_path / "there.png").read_bytes() == (tmp_path / "here.png").read_bytes()
@@ -73,14 +74,17 @@ def test_a_helper_that_is_gone_or_broken_costs_nothing(call, tmp_path, monkeypat
     curves, lm, title, subtitle = call
     expected = plotting.plot_trajectory_map(tmp_path / "ref.png", curves, lm, title=title, subtitle=subtitle)
     killed = FigureProcess()
+    killed.start(only_if_useful=False)
     killed._proc.kill()
     assert killed.plot_trajectory_map(tmp_path / "a.png", curves, lm, title=title, subtitle=subtitle) == expected
     closed = FigureProcess()
+    closed.start(only_if_useful=False)
     closed.close()
     assert closed.plot_trajectory_map(tmp_path / "b.png", curves, lm, title=title, subtitle=subtitle) == expected
     # a helper that fails (here: it cannot decode the call) exits non-zero: drawn here
     monkeypatch.setattr("vislam.tools.figure_process._encode", lambda *a: b"not an npz archive")
     broken = FigureProcess()
+    broken.start(only_if_useful=False)
     assert broken.plot_trajectory_map(tmp_path / "c.png", curves, lm, title=title, subtitle=subtitle) == expected
     for name in ("a", "b", "c"):
         assert (tmp_path / f"{name}.png").read_bytes() == (tmp_path / "ref.png").read_bytes()
@@ -89,8 +93,21 @@ def test_a_helper_that_is_gone_or_broken_costs_nothing(call, tmp_path, monkeypat
 
 def test_closing_an_unused_helper_ends_it(tmp_path):
     helper = FigureProcess()
+    assert helper.start(only_if_useful=False) and helper.start(only_if_useful=False)  # started once
     proc = helper._proc
     helper.close()
     assert proc.poll() is not None and helper._proc is None
     helper.close()  # twice: nothing to do
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_helper_starts_only_where_it_saves_time(call, tmp_path):
+    """Where matplotlib is imported already (here: by this test) there is no helper, and
+    the figure is drawn here all the same."""
+    import matplotlib.figure  # noqa: F401
+
+    idle = FigureProcess()
+    assert not idle.start() and idle._proc is None
+    curves, lm, title, subtitle = call
+    view = idle.plot_trajectory_map(tmp_path / "f.png", curves, lm, title=title, subtitle=subtitle)
+    assert view == plotting.plot_trajectory_map(tmp_path / "g.png", curves, lm, title=title, subtitle=subtitle)

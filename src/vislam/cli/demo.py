@@ -49,14 +49,10 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from vislam.tools.figure_process import start_figure_process
+    from vislam.tools.figure_process import FigureProcess
 
-    figures = start_figure_process()  # imports matplotlib while this process simulates and filters
-    try:
+    with FigureProcess() as figures:
         return _run(args, figures)
-    finally:
-        if figures is not None:
-            figures.close()
 
 
 def _run(args, figures) -> int:
@@ -69,6 +65,7 @@ def _run(args, figures) -> int:
     sim_options = SimulationOptions(seed=args.seed, n_frames=args.frames, **DEMO_NOISE)  # ConfigError if bad
     filter_options = FilterOptions(velocity_noise_mps=DEMO_NOISE["velocity_noise_mps"],
                                    angular_noise_radps=DEMO_NOISE["angular_noise_radps"])
+    figures.start()  # its helper process imports matplotlib while this one simulates and filters
     stage = OutputStage(args.out)
     close = lambda: None  # noqa: E731
     try:
@@ -87,7 +84,7 @@ def _run(args, figures) -> int:
                        "simulation": sim_options.to_dict()}
             summary = write_demo_outputs(stage, slam, localization, drive.world_T_imu, dataset=dataset,
                                          duration_s=seq.duration_s, start_time=start_time,
-                                         plot=figures.plot_trajectory_map if figures is not None else None)
+                                         plot=figures.plot_trajectory_map)
     except KeyboardInterrupt:
         close()
         print(interrupted_message("demo", stage), file=sys.stderr)

@@ -143,16 +143,10 @@ def open_rerun_recorder(args, sequence):
 
 
 def run(args) -> int:
-    from vislam.tools.figure_process import start_figure_process
+    from vislam.tools.figure_process import FigureProcess
 
-    # The trajectory figure's helper process imports matplotlib while this one filters
-    # (with --gt the evaluation's figure imports it here anyway).
-    figures = None if getattr(args, "gt", None) else start_figure_process()
-    try:
+    with FigureProcess() as figures:  # started once the inputs are checked
         return _run(args, figures)
-    finally:
-        if figures is not None:
-            figures.close()
 
 
 def _run(args, figures) -> int:
@@ -196,6 +190,8 @@ def _run(args, figures) -> int:
 
         sequence = apply_corrections(sequence, options)  # a no-op if the estimators apply them again
 
+    if gt is None:  # (with --gt the evaluation's figure imports matplotlib here anyway)
+        figures.start()  # its helper process imports matplotlib while this one filters
     stage = OutputStage(args.out)
     close, recorder = (lambda: None), None
     try:
@@ -219,7 +215,7 @@ def _run(args, figures) -> int:
                     ground_truth=gt_info)
             summary = write_run_outputs(stage, result, dataset=dataset, duration_s=sequence.duration_s,
                                         start_time=start_time, extra=extra, ground_truth=gt_poses,
-                                        plot=figures.plot_trajectory_map if figures is not None else None)
+                                        plot=figures.plot_trajectory_map)
         if recorder is not None:
             recorder.close()  # the .rrd appears only after the other outputs
     except BaseException as exc:

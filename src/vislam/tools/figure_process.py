@@ -2,9 +2,9 @@
 
 Importing matplotlib and drawing the first figure costs about half a second of a
 `vislam run` (more than the filter of a short recording). :class:`FigureProcess` starts
-a second Python process when a command begins; that process imports matplotlib (and
-loads its fonts) on the other core while this one loads the recording and filters,
-then draws :func:`vislam.tools.plotting.plot_trajectory_map` when asked — the same
+a second Python process once a command has checked its inputs; that process imports
+matplotlib and draws a small first figure (fonts, the PNG writer) on the other core
+while this one filters, then draws :func:`vislam.tools.plotting.plot_trajectory_map` when asked — the same
 function, with the same arguments, so the PNG is the one this process would draw.
 
 The data cross a pipe as an ``.npz`` archive read with ``allow_pickle=False`` (arrays,
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FigureProcess", "start_figure_process"]
+__all__ = ["FigureProcess"]
 
 logger = logging.getLogger(__name__)
 
@@ -40,31 +40,35 @@ logger = logging.getLogger(__name__)
 ANSWER_TIMEOUT_S = 300.0
 
 
-def start_figure_process() -> FigureProcess | None:
-    """A started :class:`FigureProcess`, or None where it would not save time (matplotlib
-    already imported in this process, a single core) or could not start."""
-    if "matplotlib.figure" in sys.modules or (os.cpu_count() or 1) < 2:
-        return None
-    try:
-        return FigureProcess()
-    except OSError as exc:  # e.g. no process can be created: draw here
-        logger.debug("no figure helper process: %s", exc)
-        return None
-
-
 class FigureProcess:
     """A helper process that draws :func:`~vislam.tools.plotting.plot_trajectory_map`.
 
-    Use it as a context manager (or call :meth:`close`): the helper ends with it.
+    Created idle; :meth:`start` starts the helper. Use it as a context manager (or call
+    :meth:`close`): the helper ends with it. Without a helper (not started, or gone),
+    :meth:`plot_trajectory_map` draws in this process.
     """
 
     def __init__(self) -> None:
+        self._proc: subprocess.Popen | None = None
+
+    def start(self, only_if_useful: bool = True) -> bool:
+        """Start the helper; True if it runs. With ``only_if_useful``, not where it would
+        save nothing: matplotlib already imported here, or a single core."""
+        if self._proc is not None:
+            return True
+        if only_if_useful and ("matplotlib.figure" in sys.modules or (os.cpu_count() or 1) < 2):
+            return False
         package_root = str(Path(__file__).resolve().parents[2])  # the folder that holds vislam/
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
-        self._proc: subprocess.Popen | None = subprocess.Popen(
-            [sys.executable, "-m", "vislam.tools.figure_process"], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env)
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-m", "vislam.tools.figure_process"],
+                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                          env=env)
+        except OSError as exc:  # e.g. no process can be created: draw here
+            logger.debug("no figure helper process: %s", exc)
+            return False
+        return True
 
     def __enter__(self) -> FigureProcess:
         return self
@@ -85,7 +89,7 @@ class FigureProcess:
 
     def plot_trajectory_map(self, path, curves, landmarks=None, title: str = "", subtitle: str | None = None) -> dict:
         """:func:`vislam.tools.plotting.plot_trajectory_map`, drawn by the helper (once;
-        later calls, or a helper that failed, draw here)."""
+        later calls, without a helper or when it failed: drawn here)."""
         proc, self._proc = self._proc, None
         if proc is not None:
             try:
