@@ -149,6 +149,27 @@ def run(args) -> int:
         return _run(args, figures)
 
 
+def _check_mode_flags(args) -> None:
+    """ConfigError for a flag that the chosen --mode does not use."""
+    for flag, given, needs in (("--poses", bool(args.poses), "mapping"), ("--refine", bool(args.refine), "smoother"),
+                               ("--imu-bias-sigma", args.imu_bias_sigma is not None, "slam"),
+                               ("--imu-bias-time-constant", args.imu_bias_time_constant is not None, "slam")):
+        if given and args.mode != needs:
+            raise ConfigError(f"{flag} is only used by --mode {needs} (got --mode {args.mode})")
+
+
+def _dataset_record(args, sequence, tracking) -> dict:
+    """summary.json's ``dataset``: the file, its size, cam_T_imu, the tracking and the poses used."""
+    dataset = {"name": sequence.name, "path": str(Path(args.data).resolve()), "frames": sequence.n_frames,
+               "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s,
+               "cam_T_imu": sequence.cam_T_imu.tolist()}
+    if tracking is not None:
+        dataset["tracking"] = {k: tracking[k] for k in ("source", "layout", "cache", "cache_reused")}
+    if args.mode == "mapping":
+        dataset["poses"] = str(Path(args.poses).resolve()) if args.poses else "localization"
+    return dataset
+
+
 def _run(args, figures) -> int:
     from vislam.core.estimators import run as run_estimator
     from vislam.core.results import run_warnings
@@ -157,23 +178,13 @@ def _run(args, figures) -> int:
     from vislam.tools.outputs import OutputStage, display_name, method_title, process_start_time, write_run_outputs
 
     start_time = process_start_time() or _COMMAND_START
-    for flag, given, needs in (("--poses", bool(args.poses), "mapping"), ("--refine", bool(args.refine), "smoother"),
-                               ("--imu-bias-sigma", args.imu_bias_sigma is not None, "slam"),
-                               ("--imu-bias-time-constant", args.imu_bias_time_constant is not None, "slam")):
-        if given and args.mode != needs:
-            raise ConfigError(f"{flag} is only used by --mode {needs} (got --mode {args.mode})")
+    _check_mode_flags(args)
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     sequence, tracking = load_data(args, args.out)
     poses = load_known_poses(args.poses, sequence) if args.poses else None
     gt, gt_info = ground_truth_from_args(args, sequence)  # checked before any work
-    dataset = {"name": sequence.name, "path": str(Path(args.data).resolve()), "frames": sequence.n_frames,
-               "landmarks": sequence.n_landmarks, "duration_s": sequence.duration_s,
-               "cam_T_imu": sequence.cam_T_imu.tolist()}
-    if tracking is not None:
-        dataset["tracking"] = {k: tracking[k] for k in ("source", "layout", "cache", "cache_reused")}
-    if args.mode == "mapping":
-        dataset["poses"] = str(Path(args.poses).resolve()) if args.poses else "localization"
+    dataset = _dataset_record(args, sequence, tracking)
     extra = {}
     if noise is not None:
         from vislam.core.noise import inject_noise
