@@ -162,8 +162,9 @@ def quaternion_from_rotation(R) -> np.ndarray:
     The Shepperd–Markley method (scipy's ``Rotation.from_matrix``): the largest of
     ``1 + tr R`` and ``1 − tr R + 2 R_ii`` chooses which component is computed from the
     diagonal, so that no division by a vanishing number occurs at any angle. A matrix
-    that is not orthogonal to 1e-12 is first replaced by its nearest rotation (``U Vᵀ``
-    of its SVD), as scipy does. The sign is the one the chosen component's formula gives
+    whose Gram matrix M Mᵀ is not the identity (numpy.isclose, rtol 1e-5, atol 1e-12,
+    scipy's test) is first replaced by its nearest rotation (``U Vᵀ`` of its SVD), as
+    scipy does. The sign is the one the chosen component's formula gives
     (q and −q are the same rotation)."""
     R = _as_float(R)
     lead = R.shape[:-2]

@@ -90,13 +90,11 @@ class FigureProcess:
     def plot_trajectory_map(self, path, curves, landmarks=None, title: str = "", subtitle: str | None = None) -> dict:
         """:func:`vislam.tools.plotting.plot_trajectory_map`, drawn by the helper (once;
         later calls, without a helper or when it failed: drawn here)."""
-        proc, self._proc = self._proc, None
-        if proc is not None:
+        if self._proc is not None:
             try:
-                answer = _ask(proc, _encode(path, curves, landmarks, title, subtitle))
+                answer = _ask(self._proc, _encode(path, curves, landmarks, title, subtitle))
             finally:
-                self._proc = proc
-                self.close()
+                self.close()  # one figure per helper
             if answer is not None:
                 return answer
         from vislam.tools.plotting import plot_trajectory_map

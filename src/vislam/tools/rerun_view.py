@@ -75,6 +75,7 @@ from typing import Mapping
 
 import numpy as np
 
+from vislam.core.lie import quaternion_from_rotation
 from vislam.errors import ConfigError, OutputError
 
 __all__ = ["RerunRecorder", "import_rerun", "BLOCK_POINTS", "SIGMA_SCALE", "VIEWER_PORT"]
@@ -148,26 +149,6 @@ def _viewer_executable() -> str | None:
     return shutil.which("rerun")
 
 
-def _quaternion_xyzw(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
-    m = R
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    candidates = np.array([trace, m[0, 0], m[1, 1], m[2, 2]])
-    i = int(np.argmax(candidates))
-    if i == 0:
-        w = 0.5 * np.sqrt(1.0 + trace)
-        q = np.array([(m[2, 1] - m[1, 2]) / (4 * w), (m[0, 2] - m[2, 0]) / (4 * w), (m[1, 0] - m[0, 1]) / (4 * w), w])
-    else:
-        a, b, c = (i - 1), i % 3, (i + 1) % 3  # the axis with the largest diagonal entry, then the next two
-        v = 0.5 * np.sqrt(max(1.0 + 2.0 * m[a, a] - trace, 0.0))
-        q = np.empty(4)
-        q[a] = v
-        q[b] = (m[b, a] + m[a, b]) / (4 * v)
-        q[c] = (m[c, a] + m[a, c]) / (4 * v)
-        q[3] = (m[c, b] - m[b, c]) / (4 * v)
-    return q / np.linalg.norm(q)
-
-
 def _ellipsoid(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(half sizes at SIGMA_SCALE σ, rotation quaternion xyzw) of a 3x3 covariance: the
     ellipsoid's axes are the eigenvectors, its half sizes SIGMA_SCALE √eigenvalues."""
@@ -176,7 +157,7 @@ def _ellipsoid(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if np.linalg.det(eigvec) < 0:
         eigvec[:, 0] = -eigvec[:, 0]
     half = SIGMA_SCALE * np.sqrt(np.clip(eigval, 0.0, None))
-    return half, _quaternion_xyzw(eigvec)
+    return half, quaternion_from_rotation(eigvec)
 
 
 def _check_array(name: str, a, shape: tuple) -> np.ndarray:

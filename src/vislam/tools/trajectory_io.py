@@ -72,8 +72,6 @@ def imu_to_camera_trajectory(world_T_imu, cam_T_imu) -> np.ndarray:
 #: half the frame interval of KITTI (0.1 s), so that no pose can match two others.
 DEFAULT_MAX_DIFF_S = 0.02
 
-
-
 __all__ = [
     "GT_FORMATS",
     "GT_FRAMES",
@@ -291,7 +289,7 @@ def _tum_from_table(path: Path, table: np.ndarray, lines: np.ndarray) -> tuple[n
             "TUM timestamps must be strictly increasing"
         )
     poses = np.zeros((table.shape[0], 4, 4))
-    poses[:, :3, :3] = rotation_from_quaternion(q / norms[:, None])
+    poses[:, :3, :3] = rotation_from_quaternion(q)  # (normalizes)
     poses[:, :3, 3] = table[:, 1:4]
     poses[:, 3, 3] = 1.0
     return ts, poses
