@@ -27,7 +27,7 @@ import os
 import signal
 import subprocess
 import sys
-from dataclasses import asdict
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -128,9 +128,8 @@ def _encode(path, curves, landmarks, title: str, subtitle: str | None) -> bytes:
     arrays: dict[str, np.ndarray] = {}
     styles = []
     for i, c in enumerate(curves):
-        style = asdict(c)
-        arrays[f"curve_{i}"] = np.asarray(style.pop("world_T_imu"), dtype=np.float64)
-        styles.append(style)
+        arrays[f"curve_{i}"] = np.asarray(c.world_T_imu, dtype=np.float64)
+        styles.append({f.name: getattr(c, f.name) for f in fields(c) if f.name != "world_T_imu"})  # (no copy)
     if landmarks is not None:
         arrays["p_lm_in_world"] = np.asarray(landmarks.p_lm_in_world, dtype=np.float64)
         arrays["status"] = np.asarray(landmarks.status)
