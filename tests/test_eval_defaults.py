@@ -173,6 +173,30 @@ def test_run_gt_kitti_default_is_camera(sim, tmp_path, capsys):
     assert ev_tum["ape_rmse_m"] == pytest.approx(sim["ate"], rel=0, abs=1e-9)
 
 
+def test_gt_format_is_read_from_the_file_unless_given(sim, tmp_path, capsys):
+    """--gt-format auto (the default) takes a TUM ground truth (8 values per line) as TUM,
+    matched by time and held as IMU poses, in eval and in run; a format given is obeyed,
+    and a file that does not have it is refused in one line naming it."""
+    est = sim["run"] / "trajectory.tum"
+    code, _, err = _eval(capsys, est, sim["gt_tum"], "--out", tmp_path / "e")
+    assert code == 0, err
+    metrics = _metrics(tmp_path / "e")
+    assert metrics["ground_truth_format"] == "tum" and metrics["ground_truth_frame"] == "imu"
+    assert metrics["association"]["method"] == "timestamp"
+    assert metrics["ape_rmse_m"] == pytest.approx(sim["ate"], rel=0, abs=1e-9)
+    out = tmp_path / "run"
+    assert main(["run", str(sim["data"]), "--mode", "localization", "--out", str(out), "--quiet",
+                 "--gt", str(sim["gt_tum"])]) == 0
+    ev = json.loads((out / "summary.json").read_text())["evaluation"]
+    assert ev["ground_truth"]["format"] == "tum" and ev["ground_truth"]["frame"] == "imu"
+    assert ev["ape_rmse_m"] == pytest.approx(sim["ate"], rel=0, abs=1e-9)
+    code = main(["run", str(sim["data"]), "--mode", "localization", "--out", str(tmp_path / "x"), "--quiet",
+                 "--gt", str(sim["gt_tum"]), "--gt-format", "kitti"])
+    err = capsys.readouterr().err
+    assert code == 2 and not (tmp_path / "x").exists()
+    assert len(err.strip().splitlines()) == 1 and str(sim["gt_tum"]) in err and "12 per line" in err
+
+
 @pytest.mark.parametrize("damage, fragments", [
     (lambda s: (s["dataset"].pop("cam_T_imu"), s.pop("calibration")),
      ("calibration.cam_T_imu", "dataset.cam_T_imu", "--dataset ", "sequence.npz")),

@@ -179,7 +179,7 @@ def add_noise_injection_arguments(parser) -> None:
 def add_ground_truth_arguments(parser, common=None) -> None:
     """``--gt``, ``--gt-format``, ``--gt-frame``: evaluate in the same run (shared by run and
     compare); ``--gt`` goes to ``common`` when given (run's first group)."""
-    from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAME_CHOICES
+    from vislam.tools.trajectory_io import GT_FORMAT_CHOICES, GT_FRAME_CHOICES
 
     group = parser.add_argument_group(
         "evaluation against ground truth", "Evaluate in the same run: writes metrics.json and "
@@ -187,8 +187,9 @@ def add_ground_truth_arguments(parser, common=None) -> None:
     (group if common is None else common).add_argument(
         "--gt", metavar="FILE", help="ground-truth trajectory file: evaluate in the same run (metrics.json, "
         "error_over_distance.png)")
-    group.add_argument("--gt-format", choices=GT_FORMATS, default="kitti",
-                       help="kitti: line i = frame i; tum: timestamped, matched by time (default: kitti)")
+    group.add_argument("--gt-format", choices=GT_FORMAT_CHOICES, default="auto",
+                       help="kitti: line i = frame i; tum: timestamped, matched by time; auto (default): the one "
+                       "the file's values per line say (12: kitti, 8: tum)")
     group.add_argument("--gt-frame", choices=GT_FRAME_CHOICES, default="auto",
                        help="body frame of the ground-truth poses: cam (left camera, converted to the IMU with the "
                        "dataset's cam_T_imu) or imu. auto (default): the format's convention: kitti -> cam (KITTI "
@@ -247,14 +248,16 @@ def ground_truth_from_args(args, sequence):
         return None, None
     from vislam.tools.comparison import load_run_ground_truth
     from vislam.tools.evaluation import resolve_ground_truth_frame
+    from vislam.tools.trajectory_io import resolve_gt_format
 
-    conversion = resolve_ground_truth_frame(args.gt_format, args.gt_frame, cam_T_imu=sequence.cam_T_imu,
+    fmt = resolve_gt_format(args.gt, args.gt_format)
+    conversion = resolve_ground_truth_frame(fmt, args.gt_frame, cam_T_imu=sequence.cam_T_imu,
                                             cam_T_imu_source=f"dataset {sequence.source or sequence.name}",
                                             ground_truth_path=args.gt)
-    gt = load_run_ground_truth(args.gt, sequence, args.gt_format, conversion.frame)
+    gt = load_run_ground_truth(args.gt, sequence, fmt, conversion.frame)
     source = ("calibration.cam_T_imu of this run (the transform the filter used)" if conversion.frame == "cam"
               else None)
-    info = {"path": str(Path(args.gt).resolve()), "format": args.gt_format, "frame": conversion.frame,
+    info = {"path": str(Path(args.gt).resolve()), "format": fmt, "frame": conversion.frame,
             "frame_requested": args.gt_frame, "cam_T_imu_source": source}
     return gt, info
 

@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 from vislam.errors import OutputError
-from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, GT_FORMATS, GT_FRAME_CHOICES
+from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, GT_FORMAT_CHOICES, GT_FRAME_CHOICES
 
 __all__ = ["register", "run"]
 
@@ -38,9 +38,10 @@ def register(subparsers) -> None:
     parser.add_argument("est", metavar="EST", help="estimated trajectory (KITTI: 12 values per line; TUM: 8)")
     parser.add_argument("gt", metavar="GT", help="ground-truth trajectory")
     parser.add_argument("--out", metavar="DIR", required=True, help="output directory (created if needed)")
-    parser.add_argument("--gt-format", choices=GT_FORMATS, default="kitti",
-                        help="ground-truth file format: kitti (line i = frame i, matched by index) or tum "
-                        "(timestamped, matched by time) (default: kitti)")
+    parser.add_argument("--gt-format", choices=GT_FORMAT_CHOICES, default="auto",
+                        help="ground-truth file format: kitti (line i = frame i, matched by index), tum "
+                        "(timestamped, matched by time) or auto (default): the one the file's values per line "
+                        "say (12: kitti, 8: tum)")
     parser.add_argument("--gt-frame", choices=GT_FRAME_CHOICES, default="auto",
                         help="body frame of the ground-truth poses: cam (left camera, converted to the IMU with "
                         "cam_T_imu) or imu. auto (default): the format's convention: kitti -> cam (KITTI ground "

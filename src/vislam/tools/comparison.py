@@ -132,11 +132,12 @@ SUMMARY_METRICS = (
 # ----------------------------------------------------------------------------- ground truth
 
 
-def load_run_ground_truth(path, sequence: Sequence, fmt: str = "kitti", frame: str = "auto",
+def load_run_ground_truth(path, sequence: Sequence, fmt: str = "auto", frame: str = "auto",
                           max_diff_s: float = DEFAULT_MAX_DIFF_S) -> TrajectoryFile:
     """Read the ground truth of ``sequence`` as world_T_imu and check that it matches the
     dataset's frames (at least 2 pairs), so a wrong file fails before any work.
 
+    ``fmt="auto"`` reads the format from the file's values per line (12: KITTI, 8: TUM);
     ``frame="auto"`` follows the format's convention (KITTI: left camera, TUM: IMU);
     camera poses are converted with ``sequence.cam_T_imu`` and kept as they are beside
     (:class:`~vislam.tools.evaluation.GroundTruthTrajectory`): :func:`evaluate_run`

@@ -57,6 +57,7 @@ from vislam.tools.jsonio import dumps
 from vislam.tools.trajectory_io import (
     DEFAULT_MAX_DIFF_S,
     GT_FORMATS,
+    GT_FORMAT_CHOICES,
     GT_FRAME_CHOICES,
     GT_FRAMES,
     TrajectoryFile,
@@ -64,10 +65,12 @@ from vislam.tools.trajectory_io import (
     default_gt_frame,
     imu_to_camera_trajectory,
     read_trajectory,
+    resolve_gt_format,
 )
 
 __all__ = [
     "GT_FORMATS",
+    "GT_FORMAT_CHOICES",
     "GT_FRAMES",
     "GT_FRAME_CHOICES",
     "DEFAULT_MAX_DIFF_S",
@@ -211,8 +214,8 @@ class GroundTruthFrame:
 
 
 def _check_format_and_frame(fmt: str, frame: str) -> None:
-    if fmt not in GT_FORMATS:
-        raise ConfigError(f"unknown ground-truth format {fmt!r}; expected one of {', '.join(GT_FORMATS)}")
+    if fmt not in GT_FORMAT_CHOICES:
+        raise ConfigError(f"unknown ground-truth format {fmt!r}; expected one of {', '.join(GT_FORMAT_CHOICES)}")
     if frame not in GT_FRAME_CHOICES:
         raise ConfigError(f"unknown ground-truth frame {frame!r}; expected one of {', '.join(GT_FRAME_CHOICES)}")
 
@@ -310,6 +313,10 @@ def resolve_ground_truth_frame(
             ``cam_T_imu`` (one line saying how to give it); an invalid ``cam_T_imu``.
     """
     _check_format_and_frame(fmt, frame)
+    if fmt == "auto":
+        if ground_truth_path is None:
+            raise ConfigError('ground-truth format "auto" needs the ground-truth file to detect it from')
+        fmt = resolve_gt_format(ground_truth_path, fmt)
     resolved = default_gt_frame(fmt) if frame == "auto" else frame
     if resolved == "imu":
         return GroundTruthFrame("imu", frame, fmt)
@@ -353,14 +360,15 @@ def _run_calibration_quiet(estimate_path) -> RunCalibration | None:
         return None
 
 
-def load_ground_truth(path, fmt: str = "kitti", frame: str = "auto", cam_T_imu=None,
+def load_ground_truth(path, fmt: str = "auto", frame: str = "auto", cam_T_imu=None,
                       cam_T_imu_source: str | None = None) -> TrajectoryFile:
     """Read a ground-truth trajectory and return it as ``world_T_imu``.
 
     Args:
         path: KITTI or TUM file.
-        fmt: ``"kitti"`` (12 values per line, matched to the estimate by frame index) or
-            ``"tum"`` (timestamped, matched by time).
+        fmt: ``"kitti"`` (12 values per line, matched to the estimate by frame index),
+            ``"tum"`` (timestamped, matched by time) or ``"auto"`` (the default): the
+            one the file's values per line say (:func:`resolve_gt_format`).
         frame: ``"imu"`` when the file holds ``world_T_imu``; ``"cam"`` when it holds the
             left camera ``world_T_cam`` (converted with ``cam_T_imu``); ``"auto"`` (the
             default): the format's convention, ``"cam"`` for KITTI, ``"imu"`` for TUM.
@@ -373,6 +381,7 @@ def load_ground_truth(path, fmt: str = "kitti", frame: str = "auto", cam_T_imu=N
             ``cam_T_imu``.
     """
     _check_format_and_frame(fmt, frame)
+    fmt = resolve_gt_format(path, fmt)
     traj = read_trajectory(path, fmt)
     conversion = resolve_ground_truth_frame(fmt, frame, cam_T_imu=cam_T_imu, cam_T_imu_source=cam_T_imu_source,
                                             ground_truth_path=path)
@@ -911,7 +920,7 @@ def _pairing_notes(assoc: Association, result: EvaluationResult, gt: TrajectoryF
 def evaluate_files(
     est_path,
     gt_path,
-    gt_format: str = "kitti",
+    gt_format: str = "auto",
     gt_frame: str = "auto",
     sequence=None,
     max_diff_s: float = DEFAULT_MAX_DIFF_S,
@@ -922,10 +931,12 @@ def evaluate_files(
     times of KITTI files and ``cam_T_imu`` for a camera-frame ground truth; without it,
     ``cam_T_imu`` comes from the ``summary.json`` of the estimate's run folder (see
     :func:`resolve_ground_truth_frame`). ``gt_frame="auto"`` follows the format's
-    convention (KITTI: left camera; TUM: IMU). The frame used and the source of
+    convention (KITTI: left camera; TUM: IMU); ``gt_format="auto"`` reads the format from
+    the file's values per line. The frame used and the source of
     ``cam_T_imu`` are recorded in the result's ``info``.
     """
     _check_format_and_frame(gt_format, gt_frame)
+    gt_format = resolve_gt_format(gt_path, gt_format)  # "auto": from the file's values per line
     raw_gt = read_trajectory(gt_path, gt_format)
     est = load_estimate(est_path)
     source = f"dataset {getattr(sequence, 'source', None) or getattr(sequence, 'name', '')}".strip() \

@@ -27,7 +27,8 @@ one-line :class:`~vislam.errors.ConfigError` naming the SPEC file and the key.
 One cell (:func:`run_cell`, engine-independent, no output files): load the dataset,
 check the ground truth against it, inject the noise (:func:`vislam.core.noise.inject_noise`,
 the ``--add-*`` flags of ``vislam run``), run the estimator, evaluate. A dataset's
-``gt_frame`` defaults to ``auto``, the format's convention as in ``vislam eval`` and
+``gt_format`` defaults to ``auto`` (the format the file's lines say: 12 values KITTI, 8 TUM),
+``gt_frame`` to ``auto``, the format's convention as in ``vislam eval`` and
 ``vislam run --gt`` (KITTI: left-camera poses; TUM: IMU poses); the frame used is the
 row's ``gt_frame``. Camera ground truth is converted with the ``cam_T_imu`` the cell's
 filter used (an option set's ``cam_T_imu`` or rotation correction included), and also
@@ -83,9 +84,9 @@ except ImportError:  # pragma: no cover - not POSIX: no lock
 from vislam.core.noise import NoiseSpec
 from vislam.core.options import MODES, FilterOptions, flatten_options
 from vislam.core.suggest import unknown_names_message
-from vislam.errors import ConfigError, OutputError, VislamError
+from vislam.errors import ConfigError, GroundTruthError, OutputError, VislamError
 from vislam.tools.config import _one_line, read_config_document
-from vislam.tools.trajectory_io import GT_FORMATS, GT_FRAME_CHOICES, default_gt_frame
+from vislam.tools.trajectory_io import GT_FORMAT_CHOICES, GT_FRAME_CHOICES, default_gt_frame, resolve_gt_format
 
 __all__ = ["SweepSpec", "DatasetEntry", "Cell", "COLUMNS", "KEY_COLUMNS", "RESULTS_FILE", "SUMMARY_FIGURE",
            "SweepResult", "load_spec", "parse_spec", "run_cell", "run_sweep", "read_results", "cell_key",
@@ -141,14 +142,20 @@ class DatasetEntry:
     name: str
     path: str
     groundtruth: str | None = None
-    gt_format: str = "kitti"
+    #: "auto" (from the file's values per line: 12 -> kitti, 8 -> tum), "kitti" or "tum".
+    gt_format: str = "auto"
     #: "auto" (the format's convention: KITTI -> cam, TUM -> imu), "cam" or "imu".
     gt_frame: str = "auto"
 
     @property
+    def resolved_gt_format(self) -> str:
+        """The ground truth's format: ``gt_format``, or the file's for "auto"."""
+        return resolve_gt_format(self.groundtruth, self.gt_format)
+
+    @property
     def resolved_gt_frame(self) -> str:
         """The ground truth's body frame: ``gt_frame``, or the format's convention for "auto"."""
-        return default_gt_frame(self.gt_format) if self.gt_frame == "auto" else self.gt_frame
+        return default_gt_frame(self.resolved_gt_format) if self.gt_frame == "auto" else self.gt_frame
 
 
 @dataclass(frozen=True)
@@ -169,8 +176,14 @@ class Cell:
 
     def settings(self) -> dict[str, str]:
         """What a row must match besides the key to count as this cell's result."""
+        gt_frame = ""
+        if self.dataset.groundtruth:
+            try:
+                gt_frame = self.dataset.resolved_gt_frame
+            except GroundTruthError:  # an unreadable file: the cell fails with that error when it runs
+                gt_frame = self.dataset.gt_frame
         return {"dataset_path": self.dataset.path, "groundtruth_path": self.dataset.groundtruth or "",
-                "gt_frame": self.dataset.resolved_gt_frame if self.dataset.groundtruth else "",
+                "gt_frame": gt_frame,
                 "options_values": _json(self.options), "noise_values": _json(self.noise)}
 
 
@@ -286,9 +299,9 @@ def _parse_dataset(item, where: str, base_dir: Path) -> DatasetEntry:
     name = _name(item["name"], f"{where}.name") if "name" in item else Path(path).stem
     gt = _path(item["groundtruth"], f"{where}.groundtruth", base_dir) if item.get("groundtruth") is not None \
         else None
-    fmt = item.get("gt_format", "kitti")
-    if fmt not in GT_FORMATS:
-        raise ConfigError(f"{where}.gt_format: expected one of {', '.join(GT_FORMATS)}, got {fmt!r}")
+    fmt = item.get("gt_format", "auto")
+    if fmt not in GT_FORMAT_CHOICES:
+        raise ConfigError(f"{where}.gt_format: expected one of {', '.join(GT_FORMAT_CHOICES)}, got {fmt!r}")
     frame = item.get("gt_frame", "auto")
     if frame not in GT_FRAME_CHOICES:
         raise ConfigError(f"{where}.gt_frame: expected one of {', '.join(GT_FRAME_CHOICES)}, got {frame!r}")
@@ -413,7 +426,8 @@ def _compute_cell(cell: Cell) -> dict[str, Any]:
 
     d = cell.dataset
     sequence = load_sequence(d.path)
-    gt = load_run_ground_truth(d.groundtruth, sequence, d.gt_format, d.resolved_gt_frame) if d.groundtruth else None
+    gt = (load_run_ground_truth(d.groundtruth, sequence, d.resolved_gt_format, d.resolved_gt_frame)
+          if d.groundtruth else None)
     noise = NoiseSpec(**cell.noise, seed=cell.seed)
     if not noise.is_zero:
         sequence, _ = inject_noise(sequence, noise)

@@ -33,6 +33,16 @@ GT_FRAMES = ("imu", "cam")
 #: Accepted values of a ground-truth frame option: a frame, or "auto" for the format's
 #: convention (see :func:`default_gt_frame`).
 GT_FRAME_CHOICES = ("auto",) + GT_FRAMES
+#: Accepted values of a ground-truth format option: a format, or "auto" for the one the
+#: file's values per line say (see :func:`resolve_gt_format`).
+GT_FORMAT_CHOICES = ("auto",) + GT_FORMATS
+
+
+def resolve_gt_format(path, fmt: str) -> str:
+    """``fmt``, or for ``"auto"`` the format of the file at ``path`` from its values per
+    line (:func:`detect_format`: 12 -> ``"kitti"``, 8 -> ``"tum"``; GroundTruthError,
+    naming the file, for a missing, empty or malformed one)."""
+    return detect_format(path) if fmt == "auto" else fmt
 
 
 def default_gt_frame(fmt: str) -> str:
@@ -68,16 +78,20 @@ def imu_to_camera_trajectory(world_T_imu, cam_T_imu) -> np.ndarray:
 
     cam_T_imu = np.asarray(cam_T_imu, dtype=np.float64)
     return cam_T_imu @ np.asarray(world_T_imu, dtype=np.float64) @ se3_inverse(cam_T_imu)
+
+
 #: Largest time difference (s) of an associated estimate / ground-truth pair. Well below
 #: half the frame interval of KITTI (0.1 s), so that no pose can match two others.
 DEFAULT_MAX_DIFF_S = 0.02
 
 __all__ = [
     "GT_FORMATS",
+    "GT_FORMAT_CHOICES",
     "GT_FRAMES",
     "GT_FRAME_CHOICES",
     "DEFAULT_MAX_DIFF_S",
     "default_gt_frame",
+    "resolve_gt_format",
     "camera_to_imu_trajectory",
     "imu_to_camera_trajectory",
     "TrajectoryFile",
