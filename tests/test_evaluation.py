@@ -131,6 +131,38 @@ def test_ape_and_rpe_agree_with_evo_command_line(tmp_path):
     assert abs(result.rpe_rot_100m.rmse - rpe_r100["rmse"]) < 1e-9
 
 
+@pytest.mark.parametrize("errors", ["drifting", "random rotations"])
+def test_rpe_rotation_angles_equal_evos(errors):
+    """The RPE rotation statistics (angles of evo's relative error poses, taken in one
+    batch) equal evo's own rotation_angle_deg RPE, statistic by statistic, over one frame
+    and over 100 m: on a drifting estimate (small angles) and on one with a random
+    rotation per pose (angles over all of [0, 180] deg, near 180 too)."""
+    from evo.core import metrics as evo_metrics
+    from evo.core.trajectory import PosePath3D
+
+    from vislam.tools.evaluation import _rpe_translation_rotation
+
+    rng = np.random.default_rng(3)
+    gt = drive(rng, 300)
+    est = drifting_estimate(rng, gt)
+    if errors == "random rotations":
+        axes = rng.normal(size=(len(gt), 3))
+        axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+        est[:, :3, :3] = so3_exp(axes * rng.uniform(0, np.pi, (len(gt), 1))) @ est[:, :3, :3]
+    ref, path = PosePath3D(poses_se3=list(gt)), PosePath3D(poses_se3=list(est))
+    for delta, unit in ((1, evo_metrics.Unit.frames), (100, evo_metrics.Unit.meters)):
+        trans, rot = _rpe_translation_rotation(ref, path, delta, unit)
+        expected = evo_metrics.RPE(evo_metrics.PoseRelation.rotation_angle_deg, delta=delta, delta_unit=unit,
+                                   all_pairs=False, pairs_from_reference=True)
+        expected.process_data((ref, path))
+        stats = expected.get_all_statistics()
+        assert rot.n == np.size(expected.error) == trans.n > 0
+        for key in ("rmse", "mean", "median", "std", "min", "max"):
+            assert getattr(rot, key) == pytest.approx(stats[key], rel=1e-9, abs=1e-9), (delta, key)
+        if errors == "random rotations":
+            assert stats["max"] > 170.0  # the near-π branch was exercised
+
+
 # ----------------------------------------------------------------------------- (b) camera -> IMU
 
 

@@ -1,6 +1,6 @@
-"""The trajectory figure's helper process (vislam.tools.figure_process) draws the very PNG
-this process draws, and a helper that is gone or broken costs the figure nothing: it is
-drawn here instead."""
+"""The figures' helper process (vislam.tools.figure_process) draws the very PNGs this
+process draws — the trajectory figure and the error-over-distance figure — and a helper
+that is gone or broken costs the figures nothing: they are drawn here instead."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 
 from vislam.core.lie import se3_exp
 from vislam.tools import plotting
+from vislam.tools.evaluation import ErrorFigureData, evaluate, plot_error_over_distance
 from vislam.tools.figure_process import FigureProcess, _decode, _encode
 from vislam.tools.plotting import TrajectoryCurve
 
@@ -41,9 +42,37 @@ def call():
     return curves, _Map(p, status), "sparse/0027.npz — Visual-inertial SLAM", "120 frames · 301 landmarks"
 
 
-def test_the_wire_format_carries_the_call_unchanged(call, tmp_path):
+@pytest.fixture(scope="module")
+def evaluation(call):
+    """An evaluation with a camera-frame part (as `vislam run --gt` with KITTI ground truth)."""
+    curves, _, _, _ = call
+    truth, est = curves[0].world_T_imu, curves[1].world_T_imu
+    cam_T_imu = se3_exp(np.array([0.1, -0.2, 0.3, 0.05, -0.02, 0.01]))
+    return evaluate(est, truth, gt_world_T_cam=cam_T_imu @ truth @ np.linalg.inv(cam_T_imu), cam_T_imu=cam_T_imu)
+
+
+def _assert_same_fields(a, b):
+    for name in a.__dataclass_fields__:
+        x, y = getattr(a, name), getattr(b, name)
+        if hasattr(x, "__dataclass_fields__"):
+            _assert_same_fields(x, y)
+        elif isinstance(x, np.ndarray):
+            np.testing.assert_array_equal(x, y)
+            assert x.dtype == y.dtype, name
+        else:
+            assert x == y or (x != x and y != y), name  # (NaN == NaN)
+
+
+def test_the_wire_format_carries_the_calls_unchanged(call, evaluation, tmp_path):
     curves, lm, title, subtitle = call
-    path, curves2, lm2, title2, subtitle2 = _decode(_encode(tmp_path / "f.png", curves, lm, title, subtitle))
+    data = ErrorFigureData.from_result(evaluation)
+    sent = [("error_over_distance", (data, tmp_path / "e.png", "errors — x")),
+            ("trajectory_map", (tmp_path / "f.png", curves, lm, title, subtitle))]
+    (kind_e, (data2, path_e, title_e)), (kind_m, (path, curves2, lm2, title2, subtitle2)) = _decode(_encode(sent))
+    assert (kind_e, kind_m) == ("error_over_distance", "trajectory_map")
+    assert path_e == str((tmp_path / "e.png").resolve()) and title_e == "errors — x"
+    assert data.camera is not None
+    _assert_same_fields(data, data2)
     assert path == str((tmp_path / "f.png").resolve()) and (title2, subtitle2) == (title, subtitle)
     assert len(curves2) == len(curves)
     for a, b in zip(curves, curves2):
@@ -52,22 +81,59 @@ def test_the_wire_format_carries_the_call_unchanged(call, tmp_path):
         np.testing.assert_array_equal(a.world_T_imu, b.world_T_imu)
     np.testing.assert_array_equal(lm2.p_lm_in_world, lm.p_lm_in_world)
     np.testing.assert_array_equal(lm2.status, lm.status)
-    assert _decode(_encode(tmp_path / "g.png", curves, None, "", None))[2] is None
+    assert _decode(_encode([("trajectory_map", (tmp_path / "g.png", curves, None, "", None))]))[0][1][2] is None
 
 
-def test_the_helper_draws_the_png_this_process_draws(call, tmp_path, monkeypatch):
+def test_the_helper_draws_the_pngs_this_process_draws(call, evaluation, tmp_path, monkeypatch):
     curves, lm, title, subtitle = call
     here = plotting.plot_trajectory_map(tmp_path / "here.png", curves, lm, title=title, subtitle=subtitle)
+    plot_error_over_distance(evaluation, tmp_path / "here-errors.png", title="errors — x")
 
     def not_here(*args, **kwargs):  # the helper must answer: no fallback to this process
         raise AssertionError("drawn in this process")
 
     monkeypatch.setattr(plotting, "plot_trajectory_map", not_here)
+    monkeypatch.setattr("vislam.tools.evaluation.plot_error_over_distance", not_here)
     with FigureProcess() as helper:
         assert helper.start(only_if_useful=False)
+        assert helper.plot_error_over_distance(evaluation, tmp_path / "there-errors.png", title="errors — x") is None
+        assert not (tmp_path / "there-errors.png").exists()  # queued: sent with the trajectory figure
         there = helper.plot_trajectory_map(tmp_path / "there.png", curves, lm, title=title, subtitle=subtitle)
     assert there == here and there["landmarks_outside_view"] >= 1
     assert (tmp_path / "there.png").read_bytes() == (tmp_path / "here.png").read_bytes()
+    assert (tmp_path / "there-errors.png").read_bytes() == (tmp_path / "here-errors.png").read_bytes()
+
+
+def test_a_figure_the_helper_cannot_draw_is_drawn_here(call, evaluation, tmp_path, monkeypatch):
+    """Each figure on its own: when the helper cannot draw one (here: its call arrives
+    without its data), that one is drawn here and the helper still draws the other."""
+    from vislam.tools import figure_process
+
+    curves, lm, title, subtitle = call
+    plot_error_over_distance(evaluation, tmp_path / "ref.png", title="t")
+    monkeypatch.setattr(figure_process, "_encode_error",
+                        lambda arrays, prefix, data, path, title: {"kind": "error_over_distance", "path": str(path)})
+
+    def not_here(*args, **kwargs):
+        raise AssertionError("the helper should have drawn the trajectory figure")
+
+    monkeypatch.setattr(plotting, "plot_trajectory_map", not_here)
+    with FigureProcess() as helper:
+        assert helper.start(only_if_useful=False)
+        helper.plot_error_over_distance(evaluation, tmp_path / "errors.png", title="t")
+        view = helper.plot_trajectory_map(tmp_path / "map.png", curves, lm, title=title, subtitle=subtitle)
+    assert (tmp_path / "errors.png").read_bytes() == (tmp_path / "ref.png").read_bytes()
+    assert (tmp_path / "map.png").is_file() and view["landmarks_outside_view"] >= 1
+
+
+def test_queued_figures_are_dropped_when_the_command_fails(evaluation, tmp_path):
+    with FigureProcess() as helper:
+        helper.start(only_if_useful=False)
+        helper.plot_error_over_distance(evaluation, tmp_path / "errors.png")
+    assert list(tmp_path.iterdir()) == []
+    idle = FigureProcess()  # no helper: drawn at once
+    idle.plot_error_over_distance(evaluation, tmp_path / "now.png")
+    assert (tmp_path / "now.png").is_file()
 
 
 def test_a_helper_that_is_gone_or_broken_costs_nothing(call, tmp_path, monkeypatch):

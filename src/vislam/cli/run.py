@@ -201,8 +201,7 @@ def _run(args, figures) -> int:
 
         sequence = apply_corrections(sequence, options)  # a no-op if the estimators apply them again
 
-    if gt is None:  # (with --gt the evaluation's figure imports matplotlib here anyway)
-        figures.start()  # its helper process imports matplotlib while this one filters
+    figures.start()  # its helper process imports matplotlib while this one filters
     stage = OutputStage(args.out)
     close, recorder = (lambda: None), None
     try:
@@ -223,7 +222,7 @@ def _run(args, figures) -> int:
                 gt_poses = evaluation.gt_world_T_imu  # drawn in the figure
                 extra["evaluation"] = stage_evaluation(
                     stage.staging, evaluation, f"{display_name(dataset)} — {method_title(result)} vs ground truth",
-                    ground_truth=gt_info)
+                    plot=figures.plot_error_over_distance, ground_truth=gt_info)
             summary = write_run_outputs(stage, result, dataset=dataset, duration_s=sequence.duration_s,
                                         start_time=start_time, extra=extra, ground_truth=gt_poses,
                                         plot=figures.plot_trajectory_map)

@@ -201,18 +201,20 @@ _FRAME_INFO_KEYS = {"frame": "ground_truth_frame", "frame_requested": "ground_tr
                     "cam_T_imu_source": "cam_T_imu_source"}
 
 
-def stage_evaluation(directory, evaluation: EvaluationResult, title: str, **extra) -> dict[str, Any]:
+def stage_evaluation(directory, evaluation: EvaluationResult, title: str, plot=None, **extra) -> dict[str, Any]:
     """Write ``metrics.json`` and ``error_over_distance.png`` into ``directory`` (a staging
     directory) and return :func:`evaluation_summary` with the file names. The frame of
     the ground truth (``extra["ground_truth"]``, see
-    :func:`vislam.cli.run.ground_truth_from_args`) is recorded in metrics.json too."""
+    :func:`vislam.cli.run.ground_truth_from_args`) is recorded in metrics.json too.
+    ``plot`` draws the figure (default :func:`~vislam.tools.evaluation.plot_error_over_distance`;
+    ``vislam run`` passes a :class:`~vislam.tools.figure_process.FigureProcess`'s)."""
     directory = Path(directory)
     gt_info = extra.get("ground_truth")
     if isinstance(gt_info, Mapping):
         frame_info = {name: gt_info[key] for key, name in _FRAME_INFO_KEYS.items() if key in gt_info}
         evaluation = replace(evaluation, info={**frame_info, **evaluation.info})  # the evaluation's own first
     write_metrics_json(evaluation, directory / METRICS_FILE)
-    plot_error_over_distance(evaluation, directory / ERROR_FIGURE_FILE, title=title)
+    (plot or plot_error_over_distance)(evaluation, directory / ERROR_FIGURE_FILE, title=title)
     return evaluation_summary(evaluation, **extra, metrics_file=METRICS_FILE, figure=ERROR_FIGURE_FILE)
 
 

@@ -49,7 +49,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from vislam.core.lie import is_rigid_transform, se3_inverse
+from vislam.core.lie import is_rigid_transform, se3_inverse, so3_log
 from vislam.core.metrics import KittiOdometryErrors, kitti_odometry_errors, trajectory_distances
 from vislam.errors import ConfigError, GroundTruthError, OutputError
 from vislam.tools.atomic import atomic_path, write_text_atomic
@@ -79,6 +79,7 @@ __all__ = [
     "ErrorStats",
     "Association",
     "EvaluationResult",
+    "ErrorFigureData",
     "camera_to_imu_trajectory",
     "imu_to_camera_trajectory",
     "GroundTruthFrame",
@@ -567,6 +568,20 @@ class ErrorStats:
             n=int(np.size(metric.error)),
         )
 
+    @classmethod
+    def from_errors(cls, error: np.ndarray) -> "ErrorStats":
+        """The statistics of an error array, by evo's formulas (``PE.get_statistic``)."""
+        e = np.asarray(error, dtype=np.float64)
+        return cls(
+            rmse=math.sqrt(np.mean(np.power(e, 2))),
+            mean=float(np.mean(e)),
+            median=float(np.median(e)),
+            std=float(np.std(e)),
+            min=float(np.min(e)),
+            max=float(np.max(e)),
+            n=int(e.size),
+        )
+
     def to_dict(self) -> dict[str, float]:
         return {"rmse": self.rmse, "mean": self.mean, "median": self.median, "std": self.std,
                 "min": self.min, "max": self.max, "n": self.n}
@@ -854,19 +869,29 @@ def _aligned_ape(ref, est_path, est: np.ndarray, notes: list):
         return np.eye(4), ErrorStats(), np.full(est.shape[0], np.nan), est.copy()
 
 
+def _rpe_translation_rotation(ref, est_path, delta, unit) -> tuple[ErrorStats, ErrorStats]:
+    """(translation, rotation angle in degrees) of evo's RPE over ``delta``. One evo RPE
+    (``translation_part``) pairs the poses and forms the relative error poses E_i (its
+    ``E``); their angles |Log(R(E_i))| come from :func:`vislam.core.lie.so3_log` in one
+    batch — what evo's ``rotation_angle_deg`` computes one matrix at a time through scipy
+    (two thirds of an evaluation's time), for the same pairs a second time."""
+    metric = _rpe(ref, est_path, evo_metrics.PoseRelation.translation_part, delta, unit)
+    E = np.asarray(metric.E, dtype=np.float64).reshape(-1, 4, 4)
+    if E.shape[0] == 0:
+        return ErrorStats.from_metric(metric), ErrorStats()
+    angles_deg = np.rad2deg(np.linalg.norm(so3_log(E[:, :3, :3]), axis=-1))
+    return ErrorStats.from_metric(metric), ErrorStats.from_errors(angles_deg)
+
+
 def _rpe_stats(ref, est_path, notes: list):
     """RPE over one frame and over 100 m of ground-truth path: (translation, rotation,
     translation 100 m, rotation 100 m); the 100 m ones empty with a note on a shorter path."""
     from evo import EvoException
 
-    rel = evo_metrics.PoseRelation
-    rpe_trans = ErrorStats.from_metric(_rpe(ref, est_path, rel.translation_part, 1, evo_metrics.Unit.frames))
-    rpe_rot = ErrorStats.from_metric(_rpe(ref, est_path, rel.rotation_angle_deg, 1, evo_metrics.Unit.frames))
+    rpe_trans, rpe_rot = _rpe_translation_rotation(ref, est_path, 1, evo_metrics.Unit.frames)
     try:
-        rpe_trans_100 = ErrorStats.from_metric(
-            _rpe(ref, est_path, rel.translation_part, RPE_DISTANCE_M, evo_metrics.Unit.meters))
-        rpe_rot_100 = ErrorStats.from_metric(
-            _rpe(ref, est_path, rel.rotation_angle_deg, RPE_DISTANCE_M, evo_metrics.Unit.meters))
+        rpe_trans_100, rpe_rot_100 = _rpe_translation_rotation(ref, est_path, RPE_DISTANCE_M,
+                                                               evo_metrics.Unit.meters)
     except EvoException:
         notes.append(f"ground truth shorter than {RPE_DISTANCE_M:g} m: no {RPE_DISTANCE_M:g} m RPE")
         rpe_trans_100 = rpe_rot_100 = ErrorStats()
@@ -1039,7 +1064,29 @@ def format_table(result: EvaluationResult) -> str:
     return "\n".join(lines)
 
 
-def plot_error_over_distance(result: EvaluationResult, path, title: str | None = None) -> None:
+@dataclass(frozen=True, eq=False)
+class ErrorFigureData:
+    """What :func:`plot_error_over_distance` draws of an :class:`EvaluationResult`: plain
+    arrays and numbers (so that the figure can be drawn by another process,
+    :mod:`vislam.tools.figure_process`). The attributes are those of the result
+    (``ape_rmse_m``: ``ape.rmse``); ``camera`` the same of the camera-frame evaluation."""
+
+    distance_along_gt_m: np.ndarray
+    aligned_position_error_m: np.ndarray
+    unaligned_position_error_m: np.ndarray
+    ape_rmse_m: float
+    n_frames_compared: int
+    kitti: KittiOdometryErrors
+    camera: "ErrorFigureData | None" = None
+
+    @classmethod
+    def from_result(cls, result: EvaluationResult) -> "ErrorFigureData":
+        camera = cls.from_result(result.camera) if result.camera is not None else None
+        return cls(result.distance_along_gt_m, result.aligned_position_error_m, result.unaligned_position_error_m,
+                   float(result.ape.rmse), int(result.n_frames_compared), result.kitti, camera)
+
+
+def plot_error_over_distance(result: EvaluationResult | ErrorFigureData, path, title: str | None = None) -> None:
     """PNG figure (9.5x6 in, 120 dpi), written atomically: aligned APE translation error vs
     distance travelled along the ground truth (top) and the KITTI translational error per
     segment length (bottom); the legends sit right of the axes, off the curves."""
@@ -1048,7 +1095,7 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
 
     from vislam.tools.plotting import layout_once
 
-    r = result
+    r = result if isinstance(result, ErrorFigureData) else ErrorFigureData.from_result(result)
     fig = Figure(figsize=(9.5, 6), dpi=120)
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.subplots(2, 1)
@@ -1062,15 +1109,15 @@ def plot_error_over_distance(result: EvaluationResult, path, title: str | None =
     elif r.camera is not None:  # camera ground truth: both frames
         c = r.camera
         ax1.plot(c.distance_along_gt_m, c.aligned_position_error_m, color="tab:green", lw=1.2,
-                 label=f"left camera (RMSE {c.ape.rmse:.3f} m)")
+                 label=f"left camera (RMSE {c.ape_rmse_m:.3f} m)")
         ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.0, alpha=0.8,
-                 label=f"IMU, ground truth converted with cam_T_imu (RMSE {r.ape.rmse:.3f} m)")
+                 label=f"IMU, ground truth converted with cam_T_imu (RMSE {r.ape_rmse_m:.3f} m)")
         ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10,
                       loc="left")
         ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     else:
         ax1.plot(d, r.aligned_position_error_m, color="tab:blue", lw=1.2, label="per frame")
-        ax1.axhline(r.ape.rmse, color="tab:red", ls="--", lw=1.0, label=f"RMSE {r.ape.rmse:.3f} m")
+        ax1.axhline(r.ape_rmse_m, color="tab:red", ls="--", lw=1.0, label=f"RMSE {r.ape_rmse_m:.3f} m")
         ax1.set_title(f"APE translation after SE(3) alignment ({r.n_frames_compared} frames)", fontsize=10,
                       loc="left")
         ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)

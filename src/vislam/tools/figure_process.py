@@ -1,16 +1,20 @@
-"""The trajectory figure drawn by a helper process, so that matplotlib's import overlaps the filter.
+"""The figures of a run drawn by a helper process, so that matplotlib's import overlaps the filter.
 
 Importing matplotlib and drawing the first figure costs about half a second of a
 `vislam run` (more than the filter of a short recording). :class:`FigureProcess` starts
 a second Python process once a command has checked its inputs; that process imports
 matplotlib and draws a small first figure (fonts, the PNG writer) on the other core
-while this one filters, then draws :func:`vislam.tools.plotting.plot_trajectory_map` when asked — the same
-function, with the same arguments, so the PNG is the one this process would draw.
+while this one filters, then draws the run's figures when asked —
+:func:`vislam.tools.plotting.plot_trajectory_map` and, with a ground truth,
+:func:`vislam.tools.evaluation.plot_error_over_distance`: the same functions, with the
+same arguments, so the PNGs are those this process would draw.
 
 The data cross a pipe as an ``.npz`` archive read with ``allow_pickle=False`` (arrays,
 and the strings and numbers of the call as JSON); the answer comes back as JSON. When
 the helper cannot help — it could not start, did not answer, or failed — the figure is
 drawn here instead, so a figure never depends on the helper: the helper only saves time.
+The helper draws once: the error figure is queued and sent with the trajectory figure,
+which a run draws last.
 It is not started when matplotlib is already imported here (a long-lived process: a
 test run, a notebook), where it would save nothing, nor on a single core.
 
@@ -41,15 +45,16 @@ ANSWER_TIMEOUT_S = 300.0
 
 
 class FigureProcess:
-    """A helper process that draws :func:`~vislam.tools.plotting.plot_trajectory_map`.
+    """A helper process that draws the figures of a run (module docstring).
 
     Created idle; :meth:`start` starts the helper. Use it as a context manager (or call
-    :meth:`close`): the helper ends with it. Without a helper (not started, or gone),
-    :meth:`plot_trajectory_map` draws in this process.
+    :meth:`close`): the helper ends with it. Without a helper (not started, or gone), the
+    figures are drawn in this process.
     """
 
     def __init__(self) -> None:
         self._proc: subprocess.Popen | None = None
+        self._queued: list[tuple[str, tuple]] = []  # figures sent with the next trajectory figure
 
     def start(self, only_if_useful: bool = True) -> bool:
         """Start the helper; True if it runs. With ``only_if_useful``, not where it would
@@ -77,7 +82,9 @@ class FigureProcess:
         self.close()
 
     def close(self) -> None:
-        """End the helper if it is still running (it has nothing more to draw)."""
+        """End the helper if it is still running (it has nothing more to draw). Queued
+        figures are dropped: a command that fails before its trajectory figure writes none."""
+        self._queued = []
         proc, self._proc = self._proc, None
         if proc is not None and proc.poll() is None:
             proc.kill()
@@ -87,58 +94,147 @@ class FigureProcess:
                 if pipe is not None:
                     pipe.close()
 
+    def plot_error_over_distance(self, result, path, title: str | None = None) -> None:
+        """:func:`vislam.tools.evaluation.plot_error_over_distance` (``result``: an
+        EvaluationResult or its ErrorFigureData). With a helper, queued and drawn by it
+        with the next :meth:`plot_trajectory_map`; without one, drawn here now."""
+        from vislam.tools.evaluation import ErrorFigureData, plot_error_over_distance
+
+        if self._proc is None:
+            plot_error_over_distance(result, path, title=title)
+            return
+        data = result if isinstance(result, ErrorFigureData) else ErrorFigureData.from_result(result)
+        self._queued.append((_ERROR, (data, path, title)))
+
     def plot_trajectory_map(self, path, curves, landmarks=None, title: str = "", subtitle: str | None = None) -> dict:
-        """:func:`vislam.tools.plotting.plot_trajectory_map`, drawn by the helper (once;
-        later calls, without a helper or when it failed: drawn here)."""
+        """:func:`vislam.tools.plotting.plot_trajectory_map`, drawn by the helper with the
+        figures queued before it (once; later calls, without a helper or when it failed:
+        drawn here)."""
+        calls = [*self._queued, (_MAP, (path, curves, landmarks, title, subtitle))]
+        self._queued = []
+        answers: list = [None] * len(calls)
         if self._proc is not None:
             try:
-                answer = _ask(self._proc, _encode(path, curves, landmarks, title, subtitle))
+                answers = _ask(self._proc, _encode(calls), len(calls))
             finally:
-                self.close()  # one figure per helper
-            if answer is not None:
-                return answer
+                self.close()  # one payload per helper
+        for i, call in enumerate(calls):
+            if answers[i] is None:  # the helper could not draw it: here
+                answers[i] = _draw(*call)
+        return answers[-1]
+
+
+_MAP, _ERROR = "trajectory_map", "error_over_distance"
+
+
+def _draw(kind: str, args: tuple):
+    """One figure drawn in this process: the trajectory figure's view dict, or True."""
+    if kind == _MAP:
         from vislam.tools.plotting import plot_trajectory_map
 
+        path, curves, landmarks, title, subtitle = args
         return plot_trajectory_map(path, curves, landmarks, title=title, subtitle=subtitle)
+    from vislam.tools.evaluation import plot_error_over_distance
+
+    data, path, title = args
+    plot_error_over_distance(data, path, title=title)
+    return True
 
 
-def _ask(proc: subprocess.Popen, payload: bytes) -> dict | None:
-    """Send the call, wait for the answer: the figure's dict, or None (drawn here then)."""
+def _ask(proc: subprocess.Popen, payload: bytes, n: int) -> list:
+    """Send the calls, wait for the answers: one per call, None where the helper did not
+    draw that figure (drawn here then)."""
     try:
         out, _ = proc.communicate(payload, timeout=ANSWER_TIMEOUT_S)
     except (OSError, ValueError, subprocess.TimeoutExpired) as exc:  # a broken pipe, a closed helper
         logger.debug("figure helper did not answer (%s): drawing here", exc)
-        return None
+        return [None] * n
     try:
-        answer = json.loads(out.decode("utf-8")) if proc.returncode == 0 else None
+        answers = json.loads(out.decode("utf-8")) if proc.returncode == 0 else None
     except (UnicodeDecodeError, json.JSONDecodeError):
-        answer = None
-    if not isinstance(answer, dict) or "xlim" not in answer:
+        answers = None
+    if not isinstance(answers, list) or len(answers) != n:
         logger.debug("figure helper failed (exit %s): drawing here", proc.returncode)
-        return None
-    return {"xlim": tuple(map(float, answer["xlim"])), "ylim": tuple(map(float, answer["ylim"])),
-            "landmarks_outside_view": int(answer["landmarks_outside_view"])}
+        return [None] * n
+    return [_answer(a) for a in answers]
+
+
+def _answer(a):
+    """A figure's answer checked: the trajectory figure's view dict, True, or None."""
+    if a is True:
+        return True
+    if isinstance(a, dict) and {"xlim", "ylim", "landmarks_outside_view"} <= a.keys():
+        return {"xlim": tuple(map(float, a["xlim"])), "ylim": tuple(map(float, a["ylim"])),
+                "landmarks_outside_view": int(a["landmarks_outside_view"])}
+    return None
 
 
 # ----------------------------------------------------------------------------- the wire format
 
 
-def _encode(path, curves, landmarks, title: str, subtitle: str | None) -> bytes:
-    """The call as an .npz archive: arrays as arrays, everything else as JSON text."""
+def _encode(calls: list) -> bytes:
+    """The calls as an .npz archive: arrays as arrays (named by the call's index),
+    everything else as JSON text."""
     arrays: dict[str, np.ndarray] = {}
-    styles = []
-    for i, c in enumerate(curves):
-        arrays[f"curve_{i}"] = np.asarray(c.world_T_imu, dtype=np.float64)
-        styles.append({f.name: getattr(c, f.name) for f in fields(c) if f.name != "world_T_imu"})  # (no copy)
-    if landmarks is not None:
-        arrays["p_lm_in_world"] = np.asarray(landmarks.p_lm_in_world, dtype=np.float64)
-        arrays["status"] = np.asarray(landmarks.status)
-    call = {"path": str(Path(path).resolve()), "title": title, "subtitle": subtitle, "curves": styles,
-            "landmarks": landmarks is not None}
-    arrays["call"] = np.array(json.dumps(call))
+    described = []
+    for i, (kind, args) in enumerate(calls):
+        prefix = f"{i}_"
+        described.append(_encode_map(arrays, prefix, *args) if kind == _MAP else _encode_error(arrays, prefix, *args))
+    arrays["calls"] = np.array(json.dumps(described))
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
     return buffer.getvalue()
+
+
+def _encode_map(arrays: dict, prefix: str, path, curves, landmarks, title: str, subtitle: str | None) -> dict:
+    styles = []
+    for i, c in enumerate(curves):
+        arrays[f"{prefix}curve_{i}"] = np.asarray(c.world_T_imu, dtype=np.float64)
+        styles.append({f.name: getattr(c, f.name) for f in fields(c) if f.name != "world_T_imu"})  # (no copy)
+    if landmarks is not None:
+        arrays[f"{prefix}p_lm_in_world"] = np.asarray(landmarks.p_lm_in_world, dtype=np.float64)
+        arrays[f"{prefix}status"] = np.asarray(landmarks.status)
+    return {"kind": _MAP, "path": str(Path(path).resolve()), "title": title, "subtitle": subtitle,
+            "curves": styles, "landmarks": landmarks is not None}
+
+
+def _encode_error(arrays: dict, prefix: str, data, path, title: str | None) -> dict:
+    return {"kind": _ERROR, "path": str(Path(path).resolve()), "title": title,
+            "data": _encode_fields(arrays, f"{prefix}d_", data)}
+
+
+def _encode_fields(arrays: dict, prefix: str, obj) -> dict:
+    """A dataclass of arrays, numbers and such dataclasses (ErrorFigureData, its
+    KittiOdometryErrors): arrays into ``arrays``, the rest as a JSON-able dict."""
+    out: dict = {}
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        if isinstance(value, np.ndarray):
+            arrays[prefix + f.name] = value
+            out[f.name] = {"array": prefix + f.name}
+        elif isinstance(value, np.generic):
+            out[f.name] = value.item()
+        elif value is None or isinstance(value, (bool, int, float, str)):
+            out[f.name] = value
+        else:  # a nested dataclass
+            out[f.name] = {"fields": _encode_fields(arrays, f"{prefix}{f.name}_", value)}
+    return out
+
+
+def _plain_fields(z, described: dict) -> dict:
+    return {name: z[v["array"]] if isinstance(v, dict) else v for name, v in described.items()}
+
+
+def _decode_error_data(z, described: dict):
+    """The ErrorFigureData of :func:`_encode_fields`."""
+    from vislam.core.metrics import KittiOdometryErrors
+    from vislam.tools.evaluation import ErrorFigureData
+
+    rest = {k: v for k, v in described.items() if k not in ("kitti", "camera")}
+    camera = described["camera"]
+    return ErrorFigureData(**_plain_fields(z, rest),
+                           kitti=KittiOdometryErrors(**_plain_fields(z, described["kitti"]["fields"])),
+                           camera=None if camera is None else _decode_error_data(z, camera["fields"]))
 
 
 class _Landmarks:
@@ -151,14 +247,21 @@ class _Landmarks:
         return len(self.p_lm_in_world)
 
 
-def _decode(payload: bytes):
+def _decode(payload: bytes) -> list:
+    """The calls of :func:`_encode`: [(kind, args), ...] as the parent made them."""
+    with np.load(io.BytesIO(payload), allow_pickle=False) as z:
+        return [_decode_call(z, i, call) for i, call in enumerate(json.loads(str(z["calls"])))]
+
+
+def _decode_call(z, i: int, call: dict) -> tuple[str, tuple]:
     from vislam.tools.plotting import TrajectoryCurve
 
-    with np.load(io.BytesIO(payload), allow_pickle=False) as z:
-        call = json.loads(str(z["call"]))
-        curves = [TrajectoryCurve(z[f"curve_{i}"], **style) for i, style in enumerate(call["curves"])]
-        landmarks = _Landmarks(z["p_lm_in_world"], z["status"]) if call["landmarks"] else None
-    return call["path"], curves, landmarks, call["title"], call["subtitle"]
+    prefix = f"{i}_"
+    if call["kind"] == _MAP:
+        curves = [TrajectoryCurve(z[f"{prefix}curve_{j}"], **style) for j, style in enumerate(call["curves"])]
+        landmarks = _Landmarks(z[f"{prefix}p_lm_in_world"], z[f"{prefix}status"]) if call["landmarks"] else None
+        return _MAP, (call["path"], curves, landmarks, call["title"], call["subtitle"])
+    return _ERROR, (_decode_error_data(z, call["data"]), call["path"], call["title"])
 
 
 # ----------------------------------------------------------------------------- the helper
@@ -185,13 +288,16 @@ def _main() -> int:
     payload = sys.stdin.buffer.read()
     if not payload:  # the parent needs no figure
         return 0
-    from vislam.tools.plotting import plot_trajectory_map
-
-    path, curves, landmarks, title, subtitle = _decode(payload)
-    view = plot_trajectory_map(path, curves, landmarks, title=title, subtitle=subtitle)
-    sys.stdout.write(json.dumps(view))
+    answers = []
+    with np.load(io.BytesIO(payload), allow_pickle=False) as z:
+        for i, call in enumerate(json.loads(str(z["calls"]))):
+            try:
+                answers.append(_draw(*_decode_call(z, i, call)))
+            except Exception:  # noqa: BLE001 - this figure is drawn by the parent instead
+                answers.append(None)
+    sys.stdout.write(json.dumps(answers))
     sys.stdout.flush()
-    os._exit(0)  # the figure is written: skip the interpreter's teardown (~0.1 s), which the parent would wait for
+    os._exit(0)  # the figures are written: skip the interpreter's teardown (~0.1 s), which the parent would wait for
 
 
 if __name__ == "__main__":
