@@ -13,7 +13,10 @@ load), ``vislam run DATA --mode slam --out DIR --quiet`` on every file (dense fi
 ``filter_seconds`` from DIR/summary.json and the wall and CPU time of the whole process. After
 ``--repeat`` rounds it prints the best (minimum) of each, and the ratio of the second tree
 to the first. Best-of is the figure to compare on a shared machine: other work only ever
-adds time.
+adds time. ``--gt`` runs every file with its ground truth (``--gt DATA/groundtruth/STEM.txt``:
+the evaluation, metrics.json and its figure in the whole process), e.g.::
+
+    python benchmarks/filter_speed.py --tree /tmp/before/src --tree src --files sparse/0027 --gt
 """
 
 from __future__ import annotations
@@ -41,11 +44,13 @@ def _children_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def time_run(src: str, data: Path, out: Path) -> tuple[float, float, float]:
+def time_run(src: str, data: Path, out: Path, gt: Path | None = None) -> tuple[float, float, float]:
     """(filter_seconds, whole-process wall seconds, whole-process CPU seconds) of one ``vislam run``."""
     args = [sys.executable, "-m", "vislam", "run", str(data), "--mode", "slam", "--out", str(out), "--quiet"]
     if data.parent.name == "dense":
         args += ["--velocity-noise", "0.5", "--angular-noise", "0.05"]
+    if gt is not None:
+        args += ["--gt", str(gt)]
     t0, c0 = time.perf_counter(), _children_cpu()
     subprocess.run(args, env=_env(src), check=True)
     wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
@@ -65,8 +70,13 @@ def main() -> int:
     ap.add_argument("--files", default=",".join(FILES))
     ap.add_argument("--repeat", type=int, default=5, help="rounds (default 5)")
     ap.add_argument("--json", help="also write the results to this file")
+    ap.add_argument("--gt", action="store_true", help="run with each file's ground truth (DATA/groundtruth/STEM.txt)")
     args = ap.parse_args()
     files = args.files.split(",")
+    gts = {f: Path(args.data) / "groundtruth" / f"{Path(f).name}.txt" if args.gt else None for f in files}
+    missing = [str(g) for g in gts.values() if g is not None and not g.is_file()]
+    if missing:
+        ap.error(f"--gt: no ground truth {', '.join(missing)}")
     best: dict = {t: {"help_s": float("inf"), **{f: {"filter_s": float("inf"), "process_s": float("inf"), "process_cpu_s": float("inf")}
                                                  for f in files}} for t in args.tree}
     with tempfile.TemporaryDirectory() as tmp:
@@ -75,7 +85,7 @@ def main() -> int:
                 b = best[tree]
                 b["help_s"] = min(b["help_s"], time_help(tree))
                 for name in files:
-                    filt, wall, cpu = time_run(tree, Path(args.data) / f"{name}.npz", Path(tmp) / "out")
+                    filt, wall, cpu = time_run(tree, Path(args.data) / f"{name}.npz", Path(tmp) / "out", gts[name])
                     b[name]["filter_s"] = min(b[name]["filter_s"], filt)
                     b[name]["process_s"] = min(b[name]["process_s"], wall)
                     b[name]["process_cpu_s"] = min(b[name]["process_cpu_s"], cpu)
