@@ -377,6 +377,14 @@ def test_non_finite_timestamps(tmp_path, value):
     assert_refused(write(tmp_path / "n.npz", arrays), "time_stamps", "index 5")
 
 
+def test_float32_unix_timestamps_are_refused_with_the_reason(tmp_path):
+    """Unix seconds stored as float32 are 128 s apart: frames collide, and the error says why."""
+    arrays = valid_arrays()
+    arrays["time_stamps"] = arrays["time_stamps"].astype(np.float32)
+    assert_refused(write(tmp_path / "f.npz", arrays), "time_stamps", "not strictly increasing", "float32",
+                   "128 apart", "float64")
+
+
 @pytest.mark.parametrize("delta", [0.0, -0.05])
 def test_timestamps_not_strictly_increasing(tmp_path, delta):
     arrays = valid_arrays()

@@ -97,6 +97,41 @@ def test_time_gap_beyond_the_model_warns(drive, mode):
     assert len(gap) == 1 and "19 -> 20" in gap[0] and "beyond the motion model" in gap[0]
 
 
+@pytest.mark.parametrize("unit, scale, fix", [("milliseconds", 1e3, "timestamp_scale 0.001"),
+                                               ("microseconds", 1e6, "timestamp_scale 1e-06"),
+                                               ("none", 1e12, "not a frame clock")])
+def test_time_stamps_not_in_seconds_warn_and_the_fix_silences_it(drive, unit, scale, fix):
+    """Time stamps in ms (µs, or no clock at all): frames 100 s apart. The run warns and
+    names the fix; with it (timestamp_scale, as `vislam check` suggests) no warning."""
+    t = drive.timestamps_s * scale
+    r = vislam.run(drive.replace(timestamps_s=t), "localization", vislam.FilterOptions())
+    (warning,) = [w for w in run_warnings(r) if "apart (median)" in w]
+    assert fix in warning and (unit in warning or unit == "none")
+    if unit != "none":
+        fixed = vislam.run(drive.replace(timestamps_s=t), "localization",
+                           vislam.FilterOptions(timestamp_scale=1 / scale))
+        assert run_warnings(fixed) == []
+
+
+def test_imu_samples_beyond_a_vehicle_s_motion_warn(drive, tmp_path, capsys):
+    """One corrupt sample (a speed of 1e12 m/s, a turn of 1e6 rad/s) is named with its
+    frame; a drive's own samples give no such warning."""
+    from vislam.core.sequence import imu_sample_warnings
+
+    v, w = drive.linear_velocity_in_imu_mps.copy(), drive.angular_velocity_in_imu_radps.copy()
+    assert imu_sample_warnings(v, w) == []
+    v[12, 0], w[30, 2] = 1e12, -1e6
+    speed, turn = imu_sample_warnings(v, w)
+    assert "speed beyond 343 m/s" in speed and "1e+12 m/s, frame 12" in speed
+    assert "turn rate beyond 35 rad/s" in turn and "1e+06 rad/s, frame 30" in turn
+    data = tmp_path / "corrupt.npz"
+    save_sequence(drive.replace(linear_velocity_in_imu_mps=v, angular_velocity_in_imu_radps=w), data)
+    assert main(["run", str(data), "--mode", "localization", "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert speed in summary["warnings"] and turn in summary["warnings"] and speed in err
+
+
 def test_run_prints_and_records_them(drive, tmp_path, capsys):
     px = drive.observations.pixels.copy()
     px[:, [0, 2]] = px[:, [2, 0]]

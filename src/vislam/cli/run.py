@@ -173,6 +173,7 @@ def _dataset_record(args, sequence, tracking) -> dict:
 def _run(args, figures) -> int:
     from vislam.core.estimators import run as run_estimator
     from vislam.core.results import run_warnings
+    from vislam.core.sequence import imu_sample_warnings
     from vislam.tools.comparison import evaluate_run, injected_noise_record, stage_evaluation
     from vislam.tools.config import load_known_poses
     from vislam.tools.outputs import OutputStage, display_name, method_title, process_start_time, write_run_outputs
@@ -213,7 +214,8 @@ def _run(args, figures) -> int:
                                        on_frame=record_frame(recorder, sequence))
             finally:
                 close()
-            extra["warnings"] = tracking_warnings(tracking) + run_warnings(result)
+            extra["warnings"] = (tracking_warnings(tracking) + imu_sample_warnings(
+                sequence.linear_velocity_in_imu_mps, sequence.angular_velocity_in_imu_radps) + run_warnings(result))
             if "timing" in result.extra:  # smoother: its own timings and those of refine
                 extra["timing"] = result.extra["timing"]
             gt_poses = None

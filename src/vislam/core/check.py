@@ -87,7 +87,7 @@ from vislam.core.corrections import apply_corrections
 from vislam.core.lie import se3_exp, se3_inverse, so3_exp
 from vislam.core.options import FilterOptions
 from vislam.core.rigs import match_known_rig, swapped_translation
-from vislam.core.sequence import Sequence, StereoObservations
+from vislam.core.sequence import CAMERA_FRAME_INTERVAL_S, Sequence, StereoObservations, timestamp_unit_guess
 
 __all__ = ["CheckOptions", "Finding", "CheckResult", "Analysis", "ANALYSES", "check_sequence", "estimate_white_noise",
            "estimate_pixel_noise",
@@ -124,7 +124,7 @@ class CheckOptions:
     #: the other shared files 0-4 % of the landmarks. None: keep every landmark.
     moving_landmark_px: float | None = 12.0
     #: A camera's frame interval (s, median): outside it the timestamps' unit is suspect.
-    frame_interval_s: tuple[float, float] = (0.005, 1.0)
+    frame_interval_s: tuple[float, float] = CAMERA_FRAME_INTERVAL_S
     #: Predictions (a random subset) scored for each start of the fit (rotation x factor).
     start_pairs: int = 5000
     #: Factors on the linear velocities searched (a unit mistake: km/h stored as m/s is
@@ -804,10 +804,6 @@ def _translation_finding(est: dict[str, Any], ev: _TranslationEvidence, rig, C0:
         _suggested_cam_T_imu(C0, ev.t_free)
 
 
-#: Units timestamps may have been recorded in by mistake: (seconds per unit, name).
-_TIME_UNITS = ((1e-3, "milliseconds"), (1e-6, "microseconds"), (1e-9, "nanoseconds"))
-
-
 def _timestamp_unit(dt: float, opts: CheckOptions) -> tuple[float, Finding]:
     """(factor to seconds, the finding) for the median frame interval ``dt`` of the
     recording's timestamps: a camera's interval is within ``opts.frame_interval_s``;
@@ -816,12 +812,13 @@ def _timestamp_unit(dt: float, opts: CheckOptions) -> tuple[float, Finding]:
     if dt <= 0 or lo <= dt <= hi:
         return 1.0, Finding("timestamps", "OK", f"frames are {dt:.4g} s apart ({1 / dt:.3g} Hz); nothing to do"
                             if dt > 0 else "fewer than two frames: nothing to check")
-    for factor, name in _TIME_UNITS:
-        if lo <= dt * factor <= hi:
-            return factor, Finding("timestamps", "WARN",
-                                   f"frames are {dt:.4g} apart in the recording's time unit, {dt * factor:.4g} s "
-                                   f"({1 / (dt * factor):.3g} Hz) if it is {name}: run with the suggested "
-                                   f"timestamp_scale {factor:g} (the rest of this check assumed it)")
+    guess = timestamp_unit_guess(dt, opts.frame_interval_s)
+    if guess is not None:
+        factor, name = guess
+        return factor, Finding("timestamps", "WARN",
+                               f"frames are {dt:.4g} apart in the recording's time unit, {dt * factor:.4g} s "
+                               f"({1 / (dt * factor):.3g} Hz) if it is {name}: run with the suggested "
+                               f"timestamp_scale {factor:g} (the rest of this check assumed it)")
     return 1.0, Finding("timestamps", "ERROR",
                         f"frames are {dt:.4g} s apart, outside a camera's {lo:g}-{hi:g} s in seconds and in ms, µs or "
                         f"ns: the timestamps are not a frame clock; the filter's prediction steps will be wrong")

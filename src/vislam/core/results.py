@@ -9,6 +9,7 @@ import numpy as np
 
 from vislam.core.lie import se3_inverse
 from vislam.core.options import FilterOptions
+from vislam.core.sequence import CAMERA_FRAME_INTERVAL_S, timestamp_unit_guess
 
 __all__ = ["CalibrationUsed", "LandmarkMap", "RunStats", "RunResult", "LANDMARK_OK", "LANDMARK_REJECTED",
            "model_fit_warnings", "FIT_LIMITS", "run_warnings", "JOB_LIMITS"]
@@ -268,6 +269,23 @@ def _frames(t: np.ndarray, indices) -> str:
     return ", ".join(f"{int(k) - 1} -> {int(k)} ({t[k] - t[k - 1]:.3g} s)" for k in indices)
 
 
+def _timestamp_warnings(result: "RunResult") -> list[str]:
+    """A median frame interval outside a camera's (time stamps not in seconds?)."""
+    t = np.asarray(result.timestamps_s, dtype=np.float64)
+    if t.size < 3:
+        return []
+    dt = float(np.median(np.diff(t)))
+    lo, hi = CAMERA_FRAME_INTERVAL_S
+    if not np.isfinite(dt) or dt <= 0 or lo <= dt <= hi:
+        return []
+    guess = timestamp_unit_guess(dt)
+    cause = (f"if the time stamps are in {guess[1]}, run with --auto or with timestamp_scale {guess[0]:g} in a "
+             f"--config file (`vislam check DATA` measures it)" if guess else
+             "the time stamps are not a frame clock in seconds, nor in ms, µs or ns (`vislam check DATA`)")
+    return [f"the frames are {dt:.4g} s apart (median), outside a camera's {lo:g}-{hi:g} s: {cause}; the motion "
+            f"model held each velocity sample over {dt:.4g} s"]
+
+
 def _gap_warnings(result: "RunResult") -> list[str]:
     t = np.asarray(result.timestamps_s, dtype=np.float64)
     if t.size < 2:
@@ -347,5 +365,6 @@ def run_warnings(result: "RunResult") -> list[str]:
             if rejected / n > limit:
                 out.append(f"{rejected / n:.0%} of the landmarks were rejected ({rejected} of {n}; expected below "
                            f"{limit:.0%}); {hint}")
+    out.extend(_timestamp_warnings(result))
     out.extend(_gap_warnings(result))
     return out

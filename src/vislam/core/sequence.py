@@ -27,6 +27,43 @@ __all__ = ["StereoObservations", "Sequence", "Frame", "Calibration", "MISSING_PI
 MISSING_PIXEL = -1.0
 
 
+#: A camera's frame interval (s): outside it, time stamps are likely not in seconds
+#: (``vislam check``'s ``frame_interval_s``, and a warning of every run).
+CAMERA_FRAME_INTERVAL_S = (0.005, 1.0)
+#: Units time stamps may have been recorded in by mistake: (seconds per unit, name).
+TIMESTAMP_UNITS = ((1e-3, "milliseconds"), (1e-6, "microseconds"), (1e-9, "nanoseconds"))
+
+
+def timestamp_unit_guess(dt: float, frame_interval_s: tuple[float, float] = CAMERA_FRAME_INTERVAL_S):
+    """(seconds per unit, name) of the first of :data:`TIMESTAMP_UNITS` that brings a
+    median frame interval ``dt`` (in the recording's unit) inside ``frame_interval_s``,
+    or None."""
+    lo, hi = frame_interval_s
+    return next(((factor, name) for factor, name in TIMESTAMP_UNITS if lo <= dt * factor <= hi), None)
+
+
+#: IMU samples beyond these are not a vehicle's motion (speed of sound; a MEMS gyro's
+#: usual full scale, 2000 deg/s): a unit mistake or corrupt samples (:func:`imu_sample_warnings`).
+IMU_SAMPLE_LIMITS = {"speed_mps": 343.0, "turn_rate_radps": 35.0}
+
+
+def imu_sample_warnings(linear_velocity_mps: np.ndarray, angular_velocity_radps: np.ndarray) -> list[str]:
+    """Warnings (one line each) for (T, 3) velocity samples beyond :data:`IMU_SAMPLE_LIMITS`:
+    how many, the largest and its frame. The filters integrate them as they are."""
+    out = []
+    for name, what, unit, samples in (("speed_mps", "speed", "m/s", linear_velocity_mps),
+                                      ("turn_rate_radps", "turn rate", "rad/s", angular_velocity_radps)):
+        norm = np.linalg.norm(np.asarray(samples, dtype=np.float64), axis=-1)
+        limit = IMU_SAMPLE_LIMITS[name]
+        over = np.flatnonzero(~(norm <= limit))
+        if over.size:
+            worst = int(over[np.argmax(np.nan_to_num(norm[over], nan=np.inf))])
+            out.append(f"{over.size} IMU sample(s) with a {what} beyond {limit:g} {unit} (largest {norm[worst]:.3g} "
+                       f"{unit}, frame {worst}): not a vehicle's motion — another unit, or corrupt samples; the "
+                       f"filters integrate them as they are (`vislam check DATA` measures the units)")
+    return out
+
+
 def frozen_array(a, dtype=None) -> np.ndarray:
     """A read-only copy of ``a`` (optionally converted to ``dtype``)."""
     a = np.array(a, dtype=dtype, copy=True)

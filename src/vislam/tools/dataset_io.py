@@ -388,7 +388,7 @@ def _read_timestamps(reader: _NpzReader, key: str) -> np.ndarray:
         if h.size < 2:
             raise reader.error(key, f"has {h.size} frame(s); at least 2 frames are required")
 
-    t, _ = reader.read_array(key, check)
+    t, header = reader.read_array(key, check)
     t = t.ravel()
     bad = ~np.isfinite(t)
     if bad.any():
@@ -399,10 +399,15 @@ def _read_timestamps(reader: _NpzReader, key: str) -> np.ndarray:
     bad = ~(step > 0)
     if bad.any():
         i = _first_index(bad) + 1
+        hint = ""
+        if header.dtype.kind == "f" and header.dtype.itemsize < 8:  # e.g. Unix seconds in float32: 128 s apart
+            spacing = float(np.spacing(np.abs(t[i]).astype(header.dtype)))
+            hint = (f" (stored as {header.dtype.name}, whose values near {float(t[i]):.3g} are {spacing:.3g} apart: "
+                    f"store time stamps as float64)")
         raise reader.error(
             key,
             f"is not strictly increasing at index {i} ({float(t[i])!r} after {float(t[i - 1])!r}); "
-            f"expected strictly increasing timestamps",
+            f"expected strictly increasing timestamps{hint}",
         )
     with np.errstate(over="ignore"):
         span = t[-1] - t[0]
