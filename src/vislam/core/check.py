@@ -87,7 +87,8 @@ from vislam.core.corrections import apply_corrections
 from vislam.core.lie import se3_exp, se3_inverse, so3_exp
 from vislam.core.options import FilterOptions
 from vislam.core.rigs import match_known_rig, swapped_translation
-from vislam.core.sequence import CAMERA_FRAME_INTERVAL_S, Sequence, StereoObservations, timestamp_unit_guess
+from vislam.core.sequence import (CAMERA_FRAME_INTERVAL_S, Sequence, StereoObservations, imu_samples_beyond_limits,
+                                  timestamp_unit_guess)
 
 __all__ = ["CheckOptions", "Finding", "CheckResult", "Analysis", "ANALYSES", "check_sequence", "estimate_white_noise",
            "estimate_pixel_noise",
@@ -1050,6 +1051,13 @@ def _analyse_imu_noise(run: _Check) -> Analysis:
                                   "method": "variogram nugget (quadratic fit of lags 1-6), per axis"}})
     default_v = base.velocity_noise_per_axis
     default_w = base.angular_noise_per_axis
+    corrupt = imu_samples_beyond_limits(u[:, :3], u[:, 3:])
+    if corrupt:  # one such sample makes the white noise look huge: say what it is, suggest no noise
+        out.findings.append(Finding(
+            "noise", "WARN", f"{'; '.join(corrupt)}: not a vehicle's motion — another unit, or corrupt samples; "
+                             f"the white noise per axis ({_fmt_vec(sv)} m/s, {_fmt_vec(sw)} rad/s with them) is not "
+                             f"suggested: fix or remove those samples"))
+        return out
     run.noisy = bool(np.any(sv > opts.noise_factor_warn * default_v) or np.any(sw > opts.noise_factor_warn * default_w))
     if run.noisy:
         out.suggested["velocity_noise_mps"] = [float(f"{x:.3g}") for x in np.maximum(np.nan_to_num(sv), default_v)]

@@ -47,9 +47,9 @@ def timestamp_unit_guess(dt: float, frame_interval_s: tuple[float, float] = CAME
 IMU_SAMPLE_LIMITS = {"speed_mps": 343.0, "turn_rate_radps": 35.0}
 
 
-def imu_sample_warnings(linear_velocity_mps: np.ndarray, angular_velocity_radps: np.ndarray) -> list[str]:
-    """Warnings (one line each) for (T, 3) velocity samples beyond :data:`IMU_SAMPLE_LIMITS`:
-    how many, the largest and its frame. The filters integrate them as they are."""
+def imu_samples_beyond_limits(linear_velocity_mps: np.ndarray, angular_velocity_radps: np.ndarray) -> list[str]:
+    """For (T, 3) velocity samples beyond :data:`IMU_SAMPLE_LIMITS`: one phrase per kind
+    (how many, the largest and its frame); empty when every sample is within."""
     out = []
     for name, what, unit, samples in (("speed_mps", "speed", "m/s", linear_velocity_mps),
                                       ("turn_rate_radps", "turn rate", "rad/s", angular_velocity_radps)):
@@ -59,9 +59,16 @@ def imu_sample_warnings(linear_velocity_mps: np.ndarray, angular_velocity_radps:
         if over.size:
             worst = int(over[np.argmax(np.nan_to_num(norm[over], nan=np.inf))])
             out.append(f"{over.size} IMU sample(s) with a {what} beyond {limit:g} {unit} (largest {norm[worst]:.3g} "
-                       f"{unit}, frame {worst}): not a vehicle's motion — another unit, or corrupt samples; the "
-                       f"filters integrate them as they are (`vislam check DATA` measures the units)")
+                       f"{unit}, frame {worst})")
     return out
+
+
+def imu_sample_warnings(linear_velocity_mps: np.ndarray, angular_velocity_radps: np.ndarray) -> list[str]:
+    """Warnings (one line each) of a run for the samples of :func:`imu_samples_beyond_limits`:
+    the filters integrate them as they are."""
+    return [f"{phrase}: not a vehicle's motion — another unit, or corrupt samples; the filters integrate them as "
+            f"they are (`vislam check DATA` measures the units)"
+            for phrase in imu_samples_beyond_limits(linear_velocity_mps, angular_velocity_radps)]
 
 
 def frozen_array(a, dtype=None) -> np.ndarray:
