@@ -97,6 +97,25 @@ def test_time_gap_beyond_the_model_warns(drive, mode):
     assert len(gap) == 1 and "19 -> 20" in gap[0] and "beyond the motion model" in gap[0]
 
 
+def test_slam_goes_on_after_an_hour_without_frames():
+    """Two recordings in one file, an hour apart: the SLAM prior is then so wide (72 m,
+    1 rad) that some innovation covariances are singular in floating point. Those
+    observations are gated (NIS = inf) and the run completes, with the gap's warning;
+    it stopped with "numerical failure at frame 72: Singular matrix" before."""
+    from vislam.core.updaters import innovation_nis
+
+    S = np.tile(np.eye(4), (3, 1, 1))
+    S[1] = np.ones((4, 4))  # singular
+    nis = innovation_nis(np.ones((3, 4)), S)
+    assert nis[1] == np.inf and nis[0] == nis[2] == 4.0
+    seq = simulate_drive(SimulationOptions(n_frames=120, seed=0)).sequence
+    t = seq.timestamps_s.copy()
+    t[70:] += 3600.0
+    r = vislam.run(seq.replace(timestamps_s=t), "slam", vislam.FilterOptions())
+    assert not r.partial, r.error
+    assert any("time gap" in w and "69 -> 70" in w for w in run_warnings(r))
+
+
 @pytest.mark.parametrize("unit, scale, fix", [("milliseconds", 1e3, "timestamp_scale 0.001"),
                                                ("microseconds", 1e6, "timestamp_scale 1e-06"),
                                                ("none", 1e12, "not a frame clock")])

@@ -135,11 +135,24 @@ def _dpi_dq_in_front(q: np.ndarray) -> np.ndarray:
 
 
 def innovation_nis(r: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """Normalized innovation squared rᵀ S⁻¹ r for (k, 4) residuals and (k, 4, 4) covariances."""
+    """Normalized innovation squared rᵀ S⁻¹ r for (k, 4) residuals and (k, 4, 4) covariances.
+    An S that is singular in floating point (a prior so wide — e.g. after a time gap of
+    an hour — that the pixel noise is lost in rounding) gives NIS = inf: the gate refuses
+    that observation instead of the frame failing."""
     if r.shape[0] == 0:
         return np.zeros(0)
-    x = np.linalg.solve(S, r[:, :, None])[:, :, 0]
+    try:
+        x = np.linalg.solve(S, r[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:
+        return np.array([_nis_or_inf(r[i], S[i]) for i in range(r.shape[0])])
     return np.einsum("ki,ki->k", r, x)
+
+
+def _nis_or_inf(r: np.ndarray, S: np.ndarray) -> float:
+    try:
+        return float(r @ np.linalg.solve(S, r))
+    except np.linalg.LinAlgError:
+        return math.inf
 
 
 def initialization_guard(camera: StereoCamera, pixels: np.ndarray, options) -> np.ndarray:
