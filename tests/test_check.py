@@ -83,6 +83,20 @@ def test_a_corrupt_imu_sample_is_named_not_taken_for_noise():
     assert "velocity_noise_mps" not in result.suggested and "angular_noise_radps" not in result.suggested
 
 
+def test_a_time_offset_as_long_as_the_recording_is_refused():
+    """An offset that makes every velocity sample an extrapolation (1e9 s: all of them the
+    last sample, silently) is a ConfigError naming the option; a real one is applied."""
+    from vislam.core.corrections import apply_corrections
+    from vislam.core.options import FilterOptions
+    from vislam.errors import ConfigError
+
+    seq = simulate_drive(SIM.replace(n_frames=30)).sequence
+    with pytest.raises(ConfigError, match="time_offset_s 1e[+]09 s is as long as the recording"):
+        apply_corrections(seq, FilterOptions(time_offset_s=1e9))
+    shifted = apply_corrections(seq, FilterOptions(time_offset_s=0.03))
+    assert not np.array_equal(shifted.velocities(), seq.velocities())
+
+
 # ----------------------------------------------------------------------------- faults
 
 

@@ -41,6 +41,7 @@ from vislam.core.lie import so3_exp
 from vislam.core.options import DATA_CORRECTION_FIELDS, FilterOptions
 from vislam.core.results import CalibrationUsed
 from vislam.core.sequence import Sequence
+from vislam.errors import ConfigError
 
 __all__ = ["apply_corrections", "correction_values", "shift_to_current_association", "resample_velocities",
            "rotate_cam_T_imu", "calibration_used", "CALIBRATION_FIELDS"]
@@ -94,6 +95,11 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
     if options.velocity_association == "current":
         u = shift_to_current_association(u)
     if options.time_offset_s:
+        duration = float(sequence.timestamps_s[-1] - sequence.timestamps_s[0])
+        if abs(options.time_offset_s) >= duration:
+            raise ConfigError(f"time_offset_s {options.time_offset_s:g} s is as long as the recording "
+                              f"({duration:.3g} s) or longer: every velocity sample would be the first or the last; "
+                              f"expected a camera-IMU offset (vislam check estimates it)")
         u = resample_velocities(sequence.timestamps_s, u, options.time_offset_s)
     if options.velocity_scale != 1.0:
         u = u.copy()
