@@ -314,6 +314,16 @@ def _bad_folders(tmp_path):
         (drive / cam / "timestamps.txt").write_text(
             "".join(f"2011-09-30 12:00:0{k}.{int((0.1 + offset) * 1e9):09d}\n" for k in range(3)))
     cases["timestamps disagree"] = (drive, "image_01/timestamps.txt: time stamp of frame 0 differs")
+    # EuRoC: a sensor.yaml that is not a mapping, and one without its intrinsics
+    for name, text, needle in (("euroc list", "- 1\n", "sensor.yaml: holds list [1], not a mapping"),
+                               ("euroc no intrinsics", "resolution: [752, 480]\n",
+                                "sensor.yaml: key 'intrinsics' is missing; expected 4 finite numbers")):
+        root = tmp_path / name.replace(" ", "_")
+        for cam in ("cam0", "cam1"):
+            (root / "mav0" / cam / "data").mkdir(parents=True)
+            (root / "mav0" / cam / "sensor.yaml").write_text(text)
+            (root / "mav0" / cam / "data.csv").write_text("#timestamp [ns],filename\n")
+        cases[name] = (root, needle)
     return cases
 
 

@@ -387,7 +387,12 @@ def _read_yaml(path: Path, what: str):
 
 
 def _yaml_numbers(doc, path: Path, key: str, n: int) -> np.ndarray:
-    value = doc.get(key) if isinstance(doc, dict) else None
+    if not isinstance(doc, dict):
+        raise DatasetError(f"{path}: holds {type(doc).__name__} {doc!r:.40}, not a mapping; expected key '{key}' "
+                           f"with {_numbers(n)}")
+    if key not in doc:
+        raise DatasetError(f"{path}: key '{key}' is missing; expected {_numbers(n)}")
+    value = doc.get(key)
     if isinstance(value, dict) and "data" in value:
         value = value["data"]
     try:
@@ -401,8 +406,11 @@ def _yaml_numbers(doc, path: Path, key: str, n: int) -> np.ndarray:
 
 def _euroc_camera(cam_dir: Path):
     yaml_path = cam_dir / "sensor.yaml"
-    doc = _read_yaml(yaml_path, "an EuRoC camera sensor.yaml (intrinsics, distortion_coefficients, T_BS)")
-    model = doc.get("distortion_model", "radial-tangential") if isinstance(doc, dict) else None
+    what = "an EuRoC camera sensor.yaml (intrinsics, distortion_coefficients, T_BS)"
+    doc = _read_yaml(yaml_path, what)
+    if not isinstance(doc, dict):
+        raise DatasetError(f"{yaml_path}: holds {type(doc).__name__} {doc!r:.40}, not a mapping; expected {what}")
+    model = doc.get("distortion_model", "radial-tangential")
     if model not in ("radial-tangential", "radtan"):
         raise DatasetError(f"{yaml_path}: key 'distortion_model' is {model!r}; expected radial-tangential")
     fu, fv, cu, cv = _yaml_numbers(doc, yaml_path, "intrinsics", 4)
