@@ -115,7 +115,7 @@ class FigureProcess:
         answers: list = [None] * len(calls)
         if self._proc is not None:
             try:
-                answers = _ask(self._proc, _encode(calls), len(calls))
+                answers = _ask(self._proc, _encode(calls), [kind for kind, _ in calls])
             finally:
                 self.close()  # one payload per helper
         for i, call in enumerate(calls):
@@ -141,9 +141,10 @@ def _draw(kind: str, args: tuple):
     return True
 
 
-def _ask(proc: subprocess.Popen, payload: bytes, n: int) -> list:
-    """Send the calls, wait for the answers: one per call, None where the helper did not
-    draw that figure (drawn here then)."""
+def _ask(proc: subprocess.Popen, payload: bytes, kinds: list) -> list:
+    """Send the calls (of ``kinds``), wait for the answers: one per call, None where the
+    helper did not draw that figure (drawn here then)."""
+    n = len(kinds)
     try:
         out, _ = proc.communicate(payload, timeout=ANSWER_TIMEOUT_S)
     except (OSError, ValueError, subprocess.TimeoutExpired) as exc:  # a broken pipe, a closed helper
@@ -156,13 +157,14 @@ def _ask(proc: subprocess.Popen, payload: bytes, n: int) -> list:
     if not isinstance(answers, list) or len(answers) != n:
         logger.debug("figure helper failed (exit %s): drawing here", proc.returncode)
         return [None] * n
-    return [_answer(a) for a in answers]
+    return [_answer(kind, a) for kind, a in zip(kinds, answers)]
 
 
-def _answer(a):
-    """A figure's answer checked: the trajectory figure's view dict, True, or None."""
-    if a is True:
-        return True
+def _answer(kind: str, a):
+    """A figure's answer checked: the trajectory figure's view dict, True for the error
+    figure, or None."""
+    if kind == _ERROR:
+        return True if a is True else None
     if isinstance(a, dict) and {"xlim", "ylim", "landmarks_outside_view"} <= a.keys():
         return {"xlim": tuple(map(float, a["xlim"])), "ylim": tuple(map(float, a["ylim"])),
                 "landmarks_outside_view": int(a["landmarks_outside_view"])}
