@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -238,3 +241,22 @@ def test_non_utf8_file_name_runs_and_checks(tmp_path, sim):
     proc = vislam("check", name)
     assert proc.returncode == 0, proc.stderr
     assert "drive\\xff.npz" in proc.stdout and "Traceback" not in proc.stderr
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists() or shutil.which("sh") is None,
+                    reason="needs /proc and a POSIX shell")
+def test_total_time_counts_the_command_not_what_its_process_ran_before(sim, tmp_path):
+    """A shell runs the last command of ``sh -c '...; vislam ...'`` in its own process (here
+    with an explicit exec): the 5 s the shell spent before are not the command's (they
+    were). A command in a new process counts from that process's start."""
+    data, _ = sim
+    exec_out, own_out = tmp_path / "exec", tmp_path / "own"
+    script = f"sleep 5; exec {shlex.quote(sys.executable)} -m vislam run {shlex.quote(str(data))} " \
+             f"--out {shlex.quote(str(exec_out))} --quiet"
+    subprocess.run(["sh", "-c", script], check=True, timeout=300)
+    proc = vislam("run", data, "--out", own_out, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    after_exec = json.loads((exec_out / "summary.json").read_text())
+    own = json.loads((own_out / "summary.json").read_text())
+    assert after_exec["filter_seconds"] < after_exec["total_seconds"] < own["total_seconds"] + 3.0
+    assert own["filter_seconds"] < own["total_seconds"]

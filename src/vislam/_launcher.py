@@ -14,8 +14,14 @@ a callback (:func:`_unraisable_interrupts_reach_main`, kept as a safety net).
 """
 
 import sys
+import time
 
 INTERRUPT_EXIT_CODE = 130
+#: When the command's Python code began (this module is its first): the start of a
+#: command whose process was something else before (``bash -c '... && vislam demo'``
+#: execs the last command in the shell's own process), see
+#: :func:`vislam.tools.outputs.command_start_time`.
+STARTED = time.time()
 
 
 def _interrupted(message: str) -> int:

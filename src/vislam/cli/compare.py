@@ -129,9 +129,9 @@ def run(args) -> int:
     from vislam.tools.comparison import dataset_record, parse_methods, run_comparison, runs_of, write_comparison
     from vislam.cli.common import load_data, tracking_warnings
     from vislam.core.sequence import imu_sample_warnings
-    from vislam.tools.outputs import OutputStage, process_start_time
+    from vislam.tools.outputs import OutputStage, command_start_time
 
-    start_time = process_start_time() or _COMMAND_START
+    start_time = command_start_time() or _COMMAND_START
     # every input is checked before any work or output
     methods = parse_methods(args.methods)
     options = options_from_args(args)

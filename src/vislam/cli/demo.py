@@ -59,9 +59,9 @@ def _run(args, figures) -> int:
     from vislam.core.estimators import run as run_estimator
     from vislam.core.options import FilterOptions
     from vislam.core.simulate import SimulationOptions, simulate_drive
-    from vislam.tools.outputs import OutputStage, process_start_time, write_demo_outputs
+    from vislam.tools.outputs import OutputStage, command_start_time, write_demo_outputs
 
-    start_time = process_start_time() or _COMMAND_START
+    start_time = command_start_time() or _COMMAND_START
     sim_options = SimulationOptions(seed=args.seed, n_frames=args.frames, **DEMO_NOISE)  # ConfigError if bad
     filter_options = FilterOptions(velocity_noise_mps=DEMO_NOISE["velocity_noise_mps"],
                                    angular_noise_radps=DEMO_NOISE["angular_noise_radps"])

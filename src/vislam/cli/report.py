@@ -78,7 +78,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from vislam.cli.common import configure_dask_logging, terminate_as_interrupt
     from vislam.tools.cluster import open_engine
-    from vislam.tools.outputs import process_start_time
+    from vislam.tools.outputs import command_start_time
     from vislam.tools.report import ReportSettings, generate_report
 
     if args.sim_frames < 0 or args.sim_frames == 1:
@@ -100,7 +100,7 @@ def run(args) -> int:
     try:
         with terminate_as_interrupt(), open_engine(args.scheduler, 0 if args.sequential else args.workers) as engine:
             result = generate_report(args.data, args.out, settings, log=None if args.quiet else log,
-                                     start_time=process_start_time() or _COMMAND_START, engine=engine)
+                                     start_time=command_start_time() or _COMMAND_START, engine=engine)
     finally:
         package_logger.setLevel(level)
     if not args.quiet:

@@ -176,9 +176,9 @@ def _run(args, figures) -> int:
     from vislam.core.sequence import imu_sample_warnings
     from vislam.tools.comparison import evaluate_run, injected_noise_record, stage_evaluation
     from vislam.tools.config import load_known_poses
-    from vislam.tools.outputs import OutputStage, display_name, method_title, process_start_time, write_run_outputs
+    from vislam.tools.outputs import OutputStage, display_name, method_title, command_start_time, write_run_outputs
 
-    start_time = process_start_time() or _COMMAND_START
+    start_time = command_start_time() or _COMMAND_START
     _check_mode_flags(args)
     options = options_from_args(args)
     noise = noise_spec_from_args(args)

@@ -52,6 +52,7 @@ import shutil
 import signal
 import socket
 import tempfile
+import sys
 import threading
 import time
 from pathlib import Path
@@ -86,6 +87,7 @@ __all__ = [
     "json_safe",
     "write_json",
     "process_start_time",
+    "command_start_time",
     "build_summary",
     "absolute_trajectory_error",
     "write_run_outputs",
@@ -519,6 +521,28 @@ def write_landmarks_ply(path, landmarks: LandmarkMap, comments: Iterable[str] = 
 
 
 # ----------------------------------------------------------------------------- summary
+
+
+#: Longest plausible time from a process's start to the first line of vislam's launcher
+#: (the interpreter's own start-up, a cold disk included).
+MAX_INTERPRETER_START_S = 3.0
+
+
+def command_start_time() -> float | None:
+    """The epoch time at which this ``vislam`` command started, for ``total_seconds``:
+    the process start (:func:`process_start_time`, so the interpreter's start-up and the
+    imports count), unless the process existed long before vislam's launcher ran — a
+    shell that executed the command in its own process (``bash -c 'pip install ... &&
+    vislam demo'`` reported the installation's time as the demo's) — then the launcher's
+    start. None outside the command line (a notebook, a test): the caller's own clock."""
+    launcher = sys.modules.get("vislam._launcher")
+    launched = getattr(launcher, "STARTED", None)
+    if launched is None:
+        return None
+    started = process_start_time()
+    if started is None or launched - started > MAX_INTERPRETER_START_S:
+        return launched
+    return started
 
 
 def process_start_time() -> float | None:

@@ -78,7 +78,7 @@ from vislam.tools.comparison import (
     stage_evaluation,
     write_comparison,
 )
-from vislam.tools.outputs import FIGURE, OutputStage, process_start_time, write_run_outputs
+from vislam.tools.outputs import FIGURE, OutputStage, command_start_time, write_run_outputs
 from vislam.tools.trajectory_io import TrajectoryFile
 
 __all__ = [
@@ -570,7 +570,7 @@ def generate_report(data_dir, out_dir, settings: ReportSettings | None = None,
 
     engine = engine or SequentialEngine()
     with OutputStage(out_dir) as stage:
-        report = _ReportBuilder(stage.staging, settings, start_time or process_start_time() or time.time(), step,
+        report = _ReportBuilder(stage.staging, settings, start_time or command_start_time() or time.time(), step,
                                 notes, engine)
         try:
             report.submit_all(usable)
