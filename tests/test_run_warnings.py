@@ -149,6 +149,12 @@ def test_imu_samples_beyond_a_vehicle_s_motion_warn(drive, tmp_path, capsys):
     err = capsys.readouterr().err
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert speed in summary["warnings"] and turn in summary["warnings"] and speed in err
+    # compare: in comparison.json, in every method's summary.json, and on stderr once
+    assert main(["compare", str(data), "--methods", "separate", "--out", str(tmp_path / "cmp")]) == 0
+    err = capsys.readouterr().err
+    content = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
+    assert content["warnings"] == [speed, turn] and err.count(speed) == 1
+    assert speed in json.loads((tmp_path / "cmp" / "separate" / "summary.json").read_text())["warnings"]
 
 
 def test_run_prints_and_records_them(drive, tmp_path, capsys):

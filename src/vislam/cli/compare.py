@@ -128,7 +128,6 @@ def format_comparison(comparison, content: dict, out_dir) -> str:
 def run(args) -> int:
     from vislam.tools.comparison import dataset_record, parse_methods, run_comparison, runs_of, write_comparison
     from vislam.cli.common import load_data, tracking_warnings
-    from vislam.core.sequence import imu_sample_warnings
     from vislam.tools.outputs import OutputStage, command_start_time
 
     start_time = command_start_time() or _COMMAND_START
@@ -180,7 +179,7 @@ def run(args) -> int:
         _print(format_comparison(comparison, content, stage.out_dir))
         for warning in tracking_warnings(tracking):  # an image folder's tracks
             print(f"vislam: warning: tracking: {warning}", file=sys.stderr)
-        for warning in imu_sample_warnings(sequence.linear_velocity_in_imu_mps, sequence.angular_velocity_in_imu_radps):
+        for warning in content.get("warnings") or ():  # about the data every method ran on
             print(f"vislam: warning: {warning}", file=sys.stderr)
         for key, method in content["methods"].items():
             for warning in method.get("warnings") or ():

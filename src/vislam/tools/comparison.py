@@ -383,6 +383,15 @@ class Comparison:
     def partial(self) -> bool:
         return any(m.result.partial for m in self.methods.values())
 
+    @property
+    def warnings(self) -> list[str]:
+        """Warnings about the data every method ran on (one line each):
+        :func:`vislam.core.sequence.imu_sample_warnings`."""
+        from vislam.core.sequence import imu_sample_warnings
+
+        seq = self.sequence
+        return imu_sample_warnings(seq.linear_velocity_in_imu_mps, seq.angular_velocity_in_imu_radps)
+
     def ground_truth_poses(self) -> np.ndarray | None:
         """The ground-truth poses of the dataset's frames (for drawing), or None."""
         if self.ground_truth is None:
@@ -413,6 +422,7 @@ class Comparison:
             "ate_m": {key: m.ate_m for key, m in self.methods.items()},
             "cam_ate_m": {key: m.cam_ate_m for key, m in self.methods.items()},
             "partial": self.partial,
+            "warnings": self.warnings,
         }
 
 
@@ -576,7 +586,7 @@ def write_comparison(directory, comparison: Comparison, start_time: float | None
         if m.result.mode == "mapping":
             dataset["poses"] = "localization"
         extra: dict[str, Any] = {"injected_noise": noise_record, "comparison": {"method": key, "label": m.label},
-                                 "warnings": m.warnings}
+                                 "warnings": comparison.warnings + m.warnings}
         if comparison.auto is not None:
             extra["auto"] = comparison.auto
         if "timing" in m.result.extra:  # smoother: its own timings and those of refine
