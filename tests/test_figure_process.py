@@ -4,13 +4,16 @@ that is gone or broken costs the figures nothing: they are drawn here instead.""
 
 from __future__ import annotations
 
+import io
+import json
+
 import numpy as np
 import pytest
 
 from vislam.core.lie import se3_exp
 from vislam.tools import plotting
 from vislam.tools.evaluation import ErrorFigureData, evaluate, plot_error_over_distance
-from vislam.tools.figure_process import FigureProcess, _decode, _encode
+from vislam.tools.figure_process import FigureProcess, _decode_call, _encode
 from vislam.tools.plotting import TrajectoryCurve
 
 
@@ -49,6 +52,12 @@ def evaluation(call):
     truth, est = curves[0].world_T_imu, curves[1].world_T_imu
     cam_T_imu = se3_exp(np.array([0.1, -0.2, 0.3, 0.05, -0.02, 0.01]))
     return evaluate(est, truth, gt_world_T_cam=cam_T_imu @ truth @ np.linalg.inv(cam_T_imu), cam_T_imu=cam_T_imu)
+
+
+def _decode(payload: bytes) -> list:
+    """The calls of an _encode archive, decoded as the helper process decodes them."""
+    with np.load(io.BytesIO(payload), allow_pickle=False) as z:
+        return [_decode_call(z, i, call) for i, call in enumerate(json.loads(str(z["calls"])))]
 
 
 def _assert_same_fields(a, b):

@@ -95,7 +95,7 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
     if options.velocity_association == "current":
         u = shift_to_current_association(u)
     if options.time_offset_s:
-        duration = float(sequence.timestamps_s[-1] - sequence.timestamps_s[0])
+        duration = sequence.duration_s
         if abs(options.time_offset_s) >= duration:
             raise ConfigError(f"time_offset_s {options.time_offset_s:g} s is as long as the recording "
                               f"({duration:.3g} s) or longer: every velocity sample would be the first or the last; "

@@ -382,9 +382,8 @@ def load_ground_truth(path, fmt: str = "auto", frame: str = "auto", cam_T_imu=No
             ``cam_T_imu``.
     """
     _check_format_and_frame(fmt, frame)
-    fmt = resolve_gt_format(path, fmt)
-    traj = read_trajectory(path, fmt)
-    conversion = resolve_ground_truth_frame(fmt, frame, cam_T_imu=cam_T_imu, cam_T_imu_source=cam_T_imu_source,
+    traj = read_trajectory(path, None if fmt == "auto" else fmt)  # None: detected from the values per line
+    conversion = resolve_ground_truth_frame(traj.fmt, frame, cam_T_imu=cam_T_imu, cam_T_imu_source=cam_T_imu_source,
                                             ground_truth_path=path)
     return conversion.apply(traj)
 
@@ -961,8 +960,8 @@ def evaluate_files(
     ``cam_T_imu`` are recorded in the result's ``info``.
     """
     _check_format_and_frame(gt_format, gt_frame)
-    gt_format = resolve_gt_format(gt_path, gt_format)  # "auto": from the file's values per line
-    raw_gt = read_trajectory(gt_path, gt_format)
+    raw_gt = read_trajectory(gt_path, None if gt_format == "auto" else gt_format)  # None: from the values per line
+    gt_format = raw_gt.fmt
     est = load_estimate(est_path)
     source = f"dataset {getattr(sequence, 'source', None) or getattr(sequence, 'name', '')}".strip() \
         if sequence is not None else None

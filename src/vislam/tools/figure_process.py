@@ -249,13 +249,10 @@ class _Landmarks:
         return len(self.p_lm_in_world)
 
 
-def _decode(payload: bytes) -> list:
-    """The calls of :func:`_encode`: [(kind, args), ...] as the parent made them."""
-    with np.load(io.BytesIO(payload), allow_pickle=False) as z:
-        return [_decode_call(z, i, call) for i, call in enumerate(json.loads(str(z["calls"])))]
-
-
 def _decode_call(z, i: int, call: dict) -> tuple[str, tuple]:
+    """Call ``i`` of :func:`_encode`'s archive ``z`` (its ``calls`` entry ``call``): (kind,
+    args) as the parent made them. Decoded one by one, so that one that fails costs only
+    its own figure."""
     from vislam.tools.plotting import TrajectoryCurve
 
     prefix = f"{i}_"

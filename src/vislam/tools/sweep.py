@@ -426,8 +426,8 @@ def _compute_cell(cell: Cell) -> dict[str, Any]:
 
     d = cell.dataset
     sequence = load_sequence(d.path)
-    gt = (load_run_ground_truth(d.groundtruth, sequence, d.resolved_gt_format, d.resolved_gt_frame)
-          if d.groundtruth else None)
+    gt_frame = d.resolved_gt_frame if d.groundtruth else None
+    gt = load_run_ground_truth(d.groundtruth, sequence, d.gt_format, gt_frame) if d.groundtruth else None
     noise = NoiseSpec(**cell.noise, seed=cell.seed)
     if not noise.is_zero:
         sequence, _ = inject_noise(sequence, noise)
@@ -450,7 +450,7 @@ def _compute_cell(cell: Cell) -> dict[str, Any]:
         ev = evaluate_run(result, gt, sequence).to_dict()
         out.update({k: _finite(ev.get(k)) for k in ("ape_unaligned_rmse_m", "kitti_t_pct", "kitti_r_deg_per_100m")})
         out["ate_m"] = _finite(ev.get("ape_rmse_m"))
-        out["gt_frame"] = d.resolved_gt_frame
+        out["gt_frame"] = gt_frame
         out["cam_ate_m"] = _finite(ev.get("cam_ape_rmse_m"))
         out["cam_kitti_t_pct"] = _finite(ev.get("cam_kitti_t_pct"))
         out["cam_kitti_r_deg_per_100m"] = _finite(ev.get("cam_kitti_r_deg_per_100m"))
