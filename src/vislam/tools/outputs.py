@@ -51,8 +51,8 @@ import re
 import shutil
 import signal
 import socket
-import tempfile
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
