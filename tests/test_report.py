@@ -197,7 +197,14 @@ def test_report_on_the_cluster_equals_the_sequential_one(report, sequential):
         assert [r[:timed] for r in table_rows(md, section)] == [r[:timed] for r in table_rows(seq_md, section)]
 
 
-def test_nothing_usable_is_a_clear_error(tmp_path, capsys):
+def test_nothing_usable_is_a_clear_error(tmp_path, capsys, monkeypatch):
+    """One line, nothing written, and no Dask worker started for a report with no work."""
+    from vislam.tools import cluster
+
+    def no_cluster(n):
+        raise AssertionError("a local cluster was started for a report with nothing to run")
+
+    monkeypatch.setattr(cluster, "_local_cluster", no_cluster)
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "sparse").mkdir()

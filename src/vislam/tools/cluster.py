@@ -9,7 +9,8 @@
   with no code change;
 * otherwise a :class:`distributed.LocalCluster` is started on this machine with
   ``workers`` worker processes of one thread each (the filter is single-threaded by
-  design) and no dashboard, and stopped when the block is left — also on an error or
+  design) and no dashboard when the first task is submitted (a command that stops on
+  its inputs starts none), and stopped when the block is left — also on an error or
   Ctrl-C;
 * ``workers=0`` (or :class:`SequentialEngine` directly) runs every task in this process,
   lazily, in the order the results are asked for: no Dask at all.
@@ -151,15 +152,16 @@ def open_engine(scheduler: str | None = None, workers: int | None = None) -> Ite
     """The engine of a command (see the module docstring). ``workers`` is the number of
     LocalCluster workers (default :data:`DEFAULT_WORKERS`; 0: run in this process); it
     is ignored with ``scheduler`` (the cluster has its own workers). A scheduler that
-    cannot be reached, or a local cluster that cannot start, is a ClusterError."""
+    cannot be reached is a ClusterError here; a local cluster starts with the first
+    task, and one that cannot start is a ClusterError there."""
     if workers is not None and workers < 0:
         raise ConfigError(f"--workers must be >= 0, got {workers}")
     if scheduler is None and workers == 0:
         yield SequentialEngine()
         return
-    from distributed import Client, LocalCluster
-
     if scheduler is not None:
+        from distributed import Client
+
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError, ValueError) as exc:
@@ -171,6 +173,48 @@ def open_engine(scheduler: str | None = None, workers: int | None = None) -> Ite
             yield engine
         return
     n = DEFAULT_WORKERS if workers is None else workers
+    with contextlib.ExitStack() as stack:
+        engine = _DeferredEngine(lambda: stack.enter_context(_local_cluster(n)),
+                                 f"local Dask cluster, {n} worker processes")
+        yield engine
+
+
+class _DeferredEngine:
+    """The engine of a local cluster that starts with the first task: a command that
+    stops on its inputs (a missing or broken dataset, nothing to run) starts no worker
+    processes (about 1 s each here). ``start`` enters the cluster's context on the
+    stack of :func:`open_engine`, which stops it when the block is left."""
+
+    def __init__(self, start: Callable[[], "DaskEngine"], name: str):
+        self._start = start
+        self._engine: DaskEngine | None = None
+        self.name = name
+
+    def _started(self) -> "DaskEngine":
+        if self._engine is None:
+            self._engine = self._start()
+        return self._engine
+
+    @property
+    def n_workers(self) -> int:
+        return self._started().n_workers
+
+    def submit(self, fn: Callable, *args, **kwargs):
+        return self._started().submit(fn, *args, **kwargs)
+
+    def as_completed(self, futures):
+        return self._started().as_completed(futures)
+
+    def cancel(self, futures) -> None:
+        if self._engine is not None:
+            self._engine.cancel(futures)
+
+
+@contextlib.contextmanager
+def _local_cluster(n: int) -> Iterator["DaskEngine"]:
+    """A LocalCluster of ``n`` single-threaded worker processes and its client."""
+    from distributed import Client, LocalCluster
+
     saved = {k: os.environ.get(k) for k in WORKER_ENV}
     os.environ.update(WORKER_ENV)  # inherited by the spawned worker processes
     try:
