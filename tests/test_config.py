@@ -58,6 +58,9 @@ def test_yaml_and_toml_files_give_the_same_options(tmp_path, name, text):
 def test_load_options_file_returns_the_raw_mapping(tmp_path):
     values = load_options_file(_write(tmp_path, "f.yaml", "velocity_noise_mps: 3e-4\nekf: oc\n"))
     assert values == {"velocity_noise_mps": 3e-4, "ekf": "oc"}
+    # numbers without a digit before the dot, signed or not, are numbers too
+    values = load_options_file(_write(tmp_path, "g.yaml", "a: .5\nb: -.25\nc: +.5e2\nd: ._\n"))
+    assert values == {"a": 0.5, "b": -0.25, "c": 50.0, "d": "._"}
     assert load_options_file(_write(tmp_path, "empty.yaml", "# nothing\n")) == {}
     assert load_options_file(_write(tmp_path, "empty.toml", "")) == {}
 
@@ -92,6 +95,13 @@ def test_precedence_defaults_file_flags(tmp_path):
         ("negative.yaml", "angular_noise_radps: -0.1\n", ["angular_noise_radps"]),
         ("syntax.yaml", "velocity_noise_mps: [0.5\n", ["invalid YAML"]),
         ("syntax.toml", "velocity_noise_mps = \n", ["invalid TOML"]),
+        # scalars PyYAML resolves but its constructors cannot convert (were tracebacks)
+        ("underscore.yaml", "noise: ._\n", ["noise", "mapping"]),
+        ("date.yaml", "velocity_noise_mps: 2001-13-45\n", ["invalid YAML", "month"]),
+        ("tagged.yaml", "pixel_noise_px: !!int abc\n", ["invalid YAML", "abc"]),
+        ("timestamp.yaml", "pixel_noise_px: !!timestamp 5\n", ["invalid YAML"]),
+        ("deep.yaml", "a: " + "[" * 3000 + "]" * 3000 + "\n", ["invalid YAML", "nested too deeply"]),
+        ("deep.toml", "a = " + "[" * 3000 + "]" * 3000 + "\n", ["invalid TOML", "nested too deeply"]),
         ("list.yaml", "- 1\n- 2\n", ["mapping"]),
         ("nested.toml", "[filter]\nvelocity_noise_mps = 0.5\n", ["filter"]),
         ("suffix.json", "{}", ["unsupported"]),

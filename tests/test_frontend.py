@@ -317,7 +317,8 @@ def _bad_folders(tmp_path):
     # EuRoC: a sensor.yaml that is not a mapping, and one without its intrinsics
     for name, text, needle in (("euroc list", "- 1\n", "sensor.yaml: holds list [1], not a mapping"),
                                ("euroc no intrinsics", "resolution: [752, 480]\n",
-                                "sensor.yaml: key 'intrinsics' is missing; expected 4 finite numbers")):
+                                "sensor.yaml: key 'intrinsics' is missing; expected 4 finite numbers"),
+                               ("euroc bad date", "date: 2013-13-01\n", "sensor.yaml: invalid YAML (month")):
         root = tmp_path / name.replace(" ", "_")
         for cam in ("cam0", "cam1"):
             (root / "mav0" / cam / "data").mkdir(parents=True)

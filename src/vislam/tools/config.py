@@ -61,7 +61,7 @@ _OFF_WORDS = ("none", "null", "off")
 
 
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads ``1e-3`` / ``5E+2`` (no dot) as floats and refuses a
+    """SafeLoader that also reads ``1e-3`` / ``5E+2`` (no dot) and ``-.5`` as floats and refuses a
     key given twice in one mapping (plain YAML silently keeps the last)."""
 
     def construct_mapping(self, node, deep=False):
@@ -84,13 +84,18 @@ _Loader.add_implicit_resolver(
     re.compile(
         r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
         |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
-        |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+        |[-+]?\.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?
         |[-+]?\.(?:inf|Inf|INF)
         |\.(?:nan|NaN|NAN))$""",
         re.X,
     ),
     list("-+0123456789."),
 )
+
+
+#: What PyYAML's SafeLoader constructors raise, besides YAMLError, for a scalar they
+#: cannot convert: ``2001-13-45`` (a date), ``!!int abc``, ``!!float x``, ``!!timestamp 5``.
+YAML_VALUE_ERRORS = (ValueError, TypeError, AttributeError, OverflowError)
 
 
 def _one_line(text: str) -> str:
@@ -121,6 +126,8 @@ def read_config_document(path, what: str = "options file") -> Any:
             return tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{path}: invalid TOML: {_one_line(exc)}") from None
+        except RecursionError:
+            raise ConfigError(f"{path}: invalid TOML: nested too deeply ({what} expected)") from None
     try:
         return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
@@ -128,6 +135,10 @@ def read_config_document(path, what: str = "options file") -> Any:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or exc
         raise ConfigError(f"{path}: invalid YAML{where}: {_one_line(problem)}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: invalid YAML: nested too deeply ({what} expected)") from None
+    except YAML_VALUE_ERRORS as exc:  # PyYAML's constructors: a tagged or date-like scalar they cannot convert
+        raise ConfigError(f"{path}: invalid YAML: a value cannot be read ({_one_line(exc)})") from None
 
 
 def load_options_file(path) -> dict[str, Any]:

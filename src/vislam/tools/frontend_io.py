@@ -68,6 +68,7 @@ from vislam.core.camera import StereoCamera
 from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.sequence import Sequence
 from vislam.errors import DatasetError
+from vislam.tools.config import YAML_VALUE_ERRORS
 
 __all__ = ["StereoSource", "open_stereo_source", "is_image_folder", "track_source", "write_tracks", "load_recording",
            "CACHE_NAME", "image_layout_of",
@@ -382,8 +383,9 @@ def _read_yaml(path: Path, what: str):
         lines = lines[1:]
     try:
         return yaml.safe_load("\n".join(lines))
-    except yaml.YAMLError as exc:
-        raise DatasetError(f"{path}: invalid YAML ({' '.join(str(exc).split())}); expected {what}") from None
+    except (yaml.YAMLError, RecursionError, *YAML_VALUE_ERRORS) as exc:
+        reason = "nested too deeply" if isinstance(exc, RecursionError) else " ".join(str(exc).split())
+        raise DatasetError(f"{path}: invalid YAML ({reason}); expected {what}") from None
 
 
 def _yaml_numbers(doc, path: Path, key: str, n: int) -> np.ndarray:
@@ -773,7 +775,7 @@ def load_recording(data, cache_dir=None, *, pair: str = "grey", velocities=None,
                 old = json.loads(stats_file.read_text(encoding="utf-8"))
             except (OSError, ValueError):
                 old = {}
-            if old.get("cache_key") == key:
+            if isinstance(old, dict) and old.get("cache_key") == key:
                 try:
                     sequence = load_sequence(cache, name=source.name)
                 except DatasetError:
