@@ -21,6 +21,7 @@ from vislam.tools.evaluation import (
     associate,
     camera_to_imu_trajectory,
     evaluate,
+    evaluate_associated,
     evaluate_files,
     format_table,
     load_estimate,
@@ -330,6 +331,41 @@ def test_evaluate_known_errors_and_outputs(tmp_path):
 
     assert matplotlib.image.imread(png).shape[:2] == (720, 1140)  # 9.5x6 in at 120 dpi (legends right of the axes)
     assert sorted(p.name for p in png.parent.iterdir()) == ["fig.png", "metrics.json"]  # no debris
+
+
+def test_positions_that_overflow_give_nan_and_notes_not_a_crash(tmp_path):
+    """An estimate with one position at 1e308 m (finite, but its square overflows; the
+    file readers refuse it, a library caller may not): evo's alignment SVD fails; the
+    evaluation says so in its notes, its aligned metrics are NaN (null in metrics.json),
+    numpy prints no floating-point warning, and the error figure is drawn."""
+    import warnings
+
+    rng = np.random.default_rng(4)
+    n = 150
+    gt = make_pose(so3_exp(np.c_[np.zeros(n), np.zeros(n), np.linspace(0, 1.5, n)]),
+                   np.c_[np.linspace(0, 150, n), 10 * np.sin(np.linspace(0, 3, n)), np.zeros(n)])
+    est = drifting_estimate(rng, gt)
+    est[40, :3, 3] = 1e308
+    gt_file = TrajectoryFile(path=str(tmp_path / "gt.tum"), world_T_body=gt, timestamps_s=np.arange(n) * 0.1,
+                             fmt="tum")
+    est_file = TrajectoryFile(path=str(tmp_path / "est.tum"), world_T_body=est, timestamps_s=np.arange(n) * 0.1,
+                              fmt="tum")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = evaluate_associated(est_file, gt_file)
+    assert np.isnan(r.ape.rmse)
+    assert any("alignment impossible" in note for note in r.notes)
+    assert any("path over the compared frames is inf m" in note for note in r.notes)
+    # the same position in the ground truth: the distance along it is inf from frame 40 on
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        swapped = evaluate(gt, est)
+    assert np.isinf(swapped.distance_along_gt_m[-1])
+    plot_error_over_distance(swapped, tmp_path / "fig.png")
+    assert (tmp_path / "fig.png").read_bytes()[:4] == b"\x89PNG"
+    path = tmp_path / "m.json"
+    write_metrics_json(r, path)
+    assert json.loads(path.read_text())["ape_rmse_m"] is None
 
 
 def test_short_and_straight_trajectories_give_nan_not_crash(tmp_path):

@@ -109,6 +109,8 @@ IDENTITY_TUM = "0 0 0 0 0 0 0 1"
         (read_tum, "0 1 2 3 0 0 0 0\n", "line 1: quaternion"),
         (read_tum, "1 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", "line 2: timestamp"),
         (read_tum, "0 0 0 0 0 0 0 1\n1 0 0 NaN 0 0 0 1\n", "line 2: non-finite"),
+        (read_tum, "0 0 0 0 0 0 0 1\n1 0 -1e308 0 0 0 0 1\n", "line 2: position coordinate 1e+308 m, beyond"),
+        (read_kitti, f"{IDENTITY_KITTI}\n1 0 0 0 0 1 0 2e9 0 0 1 0\n", "line 2: position coordinate 2e+09 m"),
         (read_trajectory, "1 2 3\n", "line 1: 3 values; expected 12 (KITTI) or 8 (TUM)"),
         (read_trajectory, "\n", "empty"),
     ],

@@ -758,6 +758,13 @@ def evaluate(
     evaluation (:attr:`EvaluationResult.camera`): ``est_world_T_imu @ imu_T_cam``
     against ``gt_world_T_cam``.
     """
+    # Positions so far off that their squares overflow (1e308 m) give NaN metrics with a
+    # note ("alignment impossible", "the path is inf m"), not floating-point warnings.
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _evaluate(est_world_T_imu, gt_world_T_imu, timestamps, info, gt_world_T_cam, cam_T_imu)
+
+
+def _evaluate(est_world_T_imu, gt_world_T_imu, timestamps, info, gt_world_T_cam, cam_T_imu) -> EvaluationResult:
     from evo.core.trajectory import PosePath3D
 
     camera = None
@@ -862,7 +869,7 @@ def _aligned_ape(ref, est_path, est: np.ndarray, notes: list):
         ape.process_data((ref, aligned))
         return alignment, ErrorStats.from_metric(ape), np.asarray(ape.error, dtype=np.float64), \
             np.array(aligned.poses_se3)
-    except EvoException as exc:
+    except (EvoException, np.linalg.LinAlgError) as exc:  # LinAlgError: positions that overflow (1e308 m)
         notes.append(f"SE(3) alignment impossible ({exc}); aligned APE not computed")
         logger.warning("%s", notes[-1])
         return np.eye(4), ErrorStats(), np.full(est.shape[0], np.nan), est.copy()
@@ -915,7 +922,8 @@ def evaluate_associated(est: TrajectoryFile, gt: TrajectoryFile, dataset_timesta
         gt_cam = assoc.gt_world_T_imu  # camera poses here
         result = evaluate(assoc.est_world_T_imu, camera_to_imu_trajectory(gt_cam, cam_T_imu), assoc.timestamps_s,
                           info=info, gt_world_T_cam=gt_cam, cam_T_imu=cam_T_imu)
-    notes = _pairing_notes(assoc, result, gt)
+    with np.errstate(over="ignore", invalid="ignore"):  # a path of inf m is said in a note
+        notes = _pairing_notes(assoc, result, gt)
     for note in notes:
         logger.warning("%s", note)
     return replace(result, notes=(*notes, *result.notes)) if notes else result
@@ -1122,7 +1130,8 @@ def plot_error_over_distance(result: EvaluationResult | ErrorFigureData, path, t
         ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9, frameon=False)
     ax1.set_xlabel("distance travelled along ground truth (m)")
     ax1.set_ylabel("position error (m)")
-    ax1.set_xlim(0, max(float(d[-1]), 1e-9))
+    finite_d = d[np.isfinite(d)]  # (positions that overflow give an infinite distance)
+    ax1.set_xlim(0, max(float(finite_d.max()) if finite_d.size else 0.0, 1e-9))
     ax1.set_ylim(bottom=0)
     ax1.grid(True, alpha=0.3)
 

@@ -13,7 +13,8 @@ trip is exact.
 Readers raise :class:`~vislam.errors.GroundTruthError` with a one-line message naming
 the file (and the line) for a missing, unreadable or malformed file: wrong number of
 values, non-numeric or non-finite values, an empty file, a rotation block that is not a
-rotation, a zero quaternion, or TUM timestamps that do not increase.
+rotation, a zero quaternion, TUM timestamps that do not increase, or a position
+coordinate beyond ±:data:`MAX_POSITION_M`.
 """
 
 from __future__ import annotations
@@ -207,6 +208,22 @@ def _data_lines(text: str):
             yield lineno, content.split()
 
 
+#: Largest |coordinate| (m) of a position read: 1e9 m is 150 times an Earth radius, beyond
+#: any ECEF or UTM coordinate, and far below where squares of positions overflow (1e154).
+MAX_POSITION_M = 1e9
+
+
+def _check_positions(path: Path, poses: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    far = np.abs(poses[:, :3, 3]).max(axis=1) > MAX_POSITION_M
+    if far.any():
+        i = int(np.argmax(far))
+        raise GroundTruthError(
+            f"{path}: line {lines[i]}: position coordinate {np.abs(poses[i, :3, 3]).max():.3g} m, beyond "
+            f"±{MAX_POSITION_M:.0e} m; a trajectory in metres was expected"
+        )
+    return poses
+
+
 def _short(s: str, n: int = 40) -> str:
     return s if len(s) <= n else s[: n - 3] + "..."
 
@@ -282,7 +299,7 @@ def _kitti_from_table(path: Path, table: np.ndarray, lines: np.ndarray) -> np.nd
             f"{path}: line {lines[i]}: the 3x3 block is not a rotation (max |R^T R - I| = {ortho[i]:.3g}, "
             f"det = {det[i]:.6g}); KITTI lines hold the top 3x4 of a rigid transform"
         )
-    return poses
+    return _check_positions(path, poses, lines)
 
 
 def _tum_from_table(path: Path, table: np.ndarray, lines: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -306,7 +323,7 @@ def _tum_from_table(path: Path, table: np.ndarray, lines: np.ndarray) -> tuple[n
     poses[:, :3, :3] = rotation_from_quaternion(q)  # (normalizes)
     poses[:, :3, 3] = table[:, 1:4]
     poses[:, 3, 3] = 1.0
-    return ts, poses
+    return ts, _check_positions(path, poses, lines)
 
 
 def read_kitti(path) -> np.ndarray:
