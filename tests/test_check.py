@@ -585,3 +585,45 @@ def test_two_ids_on_one_point_are_found_counted_and_named(clean_check):
     assert counts["frames"] == np.unique(obs.frame_index[copied]).size and counts["example"]["frame"] == first
     finding = found.finding("duplicate-observations")
     assert finding.severity == "WARN" and f"frame {first}" in finding.message and "count twice" in finding.message
+
+
+def test_exchanged_left_and_right_pixels_are_an_error_that_says_so(clean_check):
+    """Non-positive disparities: none on the clean drive (OK); a third of the
+    observations with their left and right pixels exchanged, a WARN; all of them, an
+    ERROR that names the exchange (the filters would skip every observation)."""
+    drive, result = clean_check
+    assert _severity(result, "disparity") == "OK"
+    seq = drive.sequence
+    obs = seq.observations
+    from vislam.core.sequence import StereoObservations
+
+    def exchanged(mask):
+        pixels = obs.pixels.copy()
+        pixels[mask] = pixels[mask][:, [2, 3, 0, 1]]
+        return seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels, obs.n_landmarks))
+
+    third = np.random.default_rng(0).random(obs.n_observations) < 0.33
+    some = check_sequence(exchanged(third), FAST).finding("disparity")
+    assert some.severity == "WARN" and "exchanged" not in some.message
+    every = check_sequence(exchanged(np.ones(obs.n_observations, bool)), FAST).finding("disparity")
+    assert every.severity == "ERROR" and "100.0 %" in every.message and "exchanged" in every.message
+
+
+@pytest.mark.parametrize("factor,named", [(1000.0, "x 0.001 (millimetres"), (100.0, "x 0.01 (centimetres")])
+def test_a_baseline_in_another_unit_is_an_error_with_the_factor(clean_check, factor, named):
+    """The clean drive's depths lie within the filter's depth guards (OK); with its
+    baseline stored in millimetres or centimetres none does, and no landmark could
+    start: an ERROR that names the factor bringing the true baseline back."""
+    drive, result = clean_check
+    depth = result.estimates["stereo_depth"]
+    assert _severity(result, "stereo-depth") == "OK" and depth["within_guards_share"] > 0.9
+    seq = drive.sequence
+    cam = seq.camera
+    wrong = seq.replace(camera=type(cam)(cam.K, cam.baseline_m * factor))
+    found = check_sequence(wrong, FAST)
+    finding = found.finding("stereo-depth")
+    assert finding.severity == "ERROR" and named in finding.message
+    z = found.estimates["stereo_depth"]
+    assert z["within_guards_share"] < 0.1
+    assert z["baseline_m"] * z["best_baseline_factor"] == pytest.approx(cam.baseline_m)
+    assert z["median_m"] == pytest.approx(depth["median_m"] * factor)

@@ -102,7 +102,7 @@ SEVERITIES = ("OK", "WARN", "ERROR")
 #: Stable codes of the findings, in the order they are reported.
 FINDING_CODES = ("timestamps", "imu-camera-rotation", "imu-camera-translation", "velocity-association",
                  "velocity-scale", "time-offset", "imu-bias", "noise", "pixel-noise", "reprojection", "repeated-observations", "disparity",
-                 "duplicate-observations")
+                 "stereo-depth", "duplicate-observations")
 
 
 @dataclass(frozen=True)
@@ -133,6 +133,16 @@ class CheckOptions:
     velocity_scale_range: tuple[float, float] = (0.2, 5.0)
     #: A factor further than this from 1 (and beyond 3σ) is reported and corrected.
     velocity_scale_warn: float = 0.05
+    #: Shares of the observations with non-positive disparity above which the disparity
+    #: finding is a WARN and an ERROR. The shared files have 0-0.3 %, sparse 0042 (a
+    #: highway: far points) 6.5 %; exchanged left and right pixels, 100 %.
+    disparity_warn_share: float = 0.2
+    disparity_error_share: float = 0.5
+    #: Shares of the triangulated depths within the filter's depth guards below which the
+    #: stereo-depth finding is a WARN and an ERROR. The shared files: 95-99.6 %, sparse
+    #: 0042 76 %; a baseline in millimetres, 0 %.
+    depth_warn_share: float = 0.5
+    depth_error_share: float = 0.1
     #: Systematic uncertainty of the factor, added in quadrature: the KITTI files' speeds
     #: are off the true motion by 1 % on average and 0.3 m/s RMS, slowly varying
     #: (benchmarks/velocity_truth.py).
@@ -1022,7 +1032,46 @@ def _analyse_observations(run: _Check) -> Analysis:
         "total": obs.n_observations, "repeated": int(np.count_nonzero(repeated)),
         "repeated_share": float(np.mean(repeated)) if obs.n_observations else 0.0, "repeat_evidence": evidence,
         "non_positive_disparity": int(np.count_nonzero(disparity <= 0)),
-        "duplicated": _duplicate_counts(obs, duplicated)}})
+        "negative_disparity": int(np.count_nonzero(disparity < 0)),
+        "duplicated": _duplicate_counts(obs, duplicated)},
+        "stereo_depth": _stereo_depths(run.sequence.camera, disparity, run.base)})
+
+
+#: Factors on the baseline tried when most depths fall outside the filter's depth guards
+#: (a baseline stored in millimetres is the file's value x 1e-3).
+_BASELINE_FACTORS = (1e-3, 1e-2, 1e-1, 10.0, 100.0, 1000.0)
+
+
+def _stereo_depths(camera, disparity: np.ndarray, base: FilterOptions) -> dict:
+    """Depths Z = fsu b / d of the observations with positive disparity against the
+    filter's depth guards [min_depth_m, max_depth_m] (outside, no landmark starts): their
+    median, 10-90 % range, the share within the guards, and the factor on the baseline
+    (of :data:`_BASELINE_FACTORS`; the one nearest 1 of those that put at least 90 % of
+    the best share within them) with its share, when it does better than the file's."""
+    d = disparity[np.isfinite(disparity) & (disparity > 0)]
+    lo, hi = float(base.min_depth_m), float(base.max_depth_m)
+    out = {"observations": int(d.size), "baseline_m": float(camera.baseline_m), "fsu_px": float(camera.fsu),
+           "guards_m": [lo, hi], "median_m": None, "p10_m": None, "p90_m": None, "within_guards_share": None,
+           "best_baseline_factor": None, "best_factor_within_share": None}
+    if d.size == 0:
+        return out
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        z = camera.fsu * camera.baseline_m / d
+
+        def within(factor: float) -> float:
+            zf = z * factor
+            return float(np.mean((zf >= lo) & (zf <= hi)))
+
+        share = within(1.0)
+        shares = {f: within(f) for f in _BASELINE_FACTORS}
+        top = max(shares.values())
+        # the smallest correction of those nearly as good (centimetres: x 0.01, not x 0.001)
+        best = min((f for f in _BASELINE_FACTORS if shares[f] >= 0.9 * top), key=lambda f: abs(np.log10(f)))
+    p10, med, p90 = (float(x) for x in np.percentile(z, [10, 50, 90]))
+    out.update(median_m=med, p10_m=p10, p90_m=p90, within_guards_share=share)
+    if shares[best] > share:
+        out.update(best_baseline_factor=best, best_factor_within_share=shares[best])
+    return out
 
 
 def _duplicate_counts(obs, duplicated: np.ndarray) -> dict:
@@ -1465,10 +1514,52 @@ def _analyse_tracker_artifacts(run: _Check) -> Analysis:
                 f"{describe_repeat_evidence(o['repeat_evidence'])}): "
                 + ("the filters handle them by default (repeated_observations: auto); nothing to do"
                    if rep_share > 0 else "nothing to do")),
-        Finding("disparity", "OK",
-                f"{npd} observations with non-positive disparity (uL <= uR): "
-                + ("they cannot be triangulated; the filter skips them; nothing to do" if npd else "nothing to do")),
+        _disparity_finding(o, run.opts),
+        _stereo_depth_finding(run.est["stereo_depth"], run.opts),
         _duplicate_finding(o["duplicated"])])
+
+
+def _disparity_finding(o: dict, opts: CheckOptions) -> Finding:
+    """Non-positive disparities (uL <= uR): a few are far points or mismatches; most of
+    them, a stereo pair whose left and right pixels are exchanged or not rectified."""
+    n, npd, neg = o["total"], o["non_positive_disparity"], o["negative_disparity"]
+    share = npd / n if n else 0.0
+    text = f"{npd} observations ({100 * share:.1f} %) with non-positive disparity (uL <= uR)"
+    if share <= opts.disparity_warn_share:
+        return Finding("disparity", "OK", text + (": they cannot be triangulated; the filter skips them; nothing to do"
+                                                  if npd else ": nothing to do"))
+    text += ": the filters cannot triangulate them and skip them"
+    if neg / n > 0.5:
+        text += (f"; {100 * neg / n:.0f} % have uR > uL, as if the left and right pixels were exchanged "
+                 "(uR, vR stored as uL, vL)")
+    else:
+        text += "; is the stereo pair rectified, and are the tracks matched between the images?"
+    severity = "ERROR" if share > opts.disparity_error_share else "WARN"
+    return Finding("disparity", severity, text + "; fix the features")
+
+
+def _stereo_depth_finding(z: dict, opts: CheckOptions) -> Finding:
+    """The share of the depths within the filter's depth guards: a baseline in the wrong
+    unit puts them all outside, and no landmark ever starts."""
+    lo, hi = z["guards_m"]
+    if not z["observations"]:
+        return Finding("stereo-depth", "OK", "no observation with positive disparity to triangulate; nothing to do")
+    share = z["within_guards_share"]
+    text = (f"the baseline {z['baseline_m']:.4g} m and focal length {z['fsu_px']:.4g} px put the observations at a "
+            f"median depth of {z['median_m']:.3g} m (10-90 %: {z['p10_m']:.3g}-{z['p90_m']:.3g} m); "
+            f"{100 * share:.0f} % are within the filter's depth guards ({lo:g}-{hi:g} m)")
+    if share >= opts.depth_warn_share:
+        return Finding("stereo-depth", "OK", text + "; nothing to do")
+    text += ": no landmark can start" if share == 0 else ": the others start no landmark"
+    factor = z["best_baseline_factor"]
+    if factor is not None and z["best_factor_within_share"] >= opts.depth_warn_share:
+        unit = {1e-3: " (millimetres stored as metres?)", 1e-2: " (centimetres stored as metres?)"}.get(factor, "")
+        text += (f"; a baseline of {z['baseline_m'] * factor:.4g} m, the file's x {factor:g}{unit}, would put "
+                 f"{100 * z['best_factor_within_share']:.0f} % within them: check the baseline's unit")
+    else:
+        text += "; check the baseline and the intrinsics, or the depth guards (min_depth_m, max_depth_m)"
+    severity = "ERROR" if share < opts.depth_error_share else "WARN"
+    return Finding("stereo-depth", severity, text)
 
 
 def _duplicate_finding(d: dict) -> Finding:
