@@ -462,6 +462,30 @@ def test_euroc_velocity_csv_is_interpolated_at_the_image_times(tmp_path):
         open_stereo_source(EUROC, velocities=csv)
 
 
+def test_a_baseline_in_millimetres_is_tracked_with_a_warning_naming_the_factor(tmp_path):
+    """calibration.yaml with the baseline in millimetres: the tracks are what the images
+    hold, but every triangulated point is kilometres away, beyond the filter's depth
+    guards; the statistics warn of it and name x 0.001, and the textured folder with the
+    baseline in metres gets no such warning."""
+    from vislam.tools.frontend_io import track_source
+
+    folder = _plain_folder(tmp_path / "mm")
+    cal = folder / "calibration.yaml"
+    cal.write_text(cal.read_text().replace("baseline: 0.5\n", "baseline: 500\n"))
+    sequence, stats = track_source(open_stereo_source(folder))
+    assert sequence.camera.baseline_m == 500.0 and stats["tracks"] > 0
+    [warning] = stats["warnings"]
+    assert "0 % are within the filter's depth guards" in warning and "0.5 m (the file's x 0.001" in warning
+    # a baseline of 1e300 m overflows the points' covariances: the same warning, no floating-point one
+    import warnings
+
+    cal.write_text(cal.read_text().replace("baseline: 500\n", "baseline: 1e300\n"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, stats = track_source(open_stereo_source(folder))
+    assert len(stats["warnings"]) == 1 and "no landmark can start" in stats["warnings"][0]
+
+
 def test_a_folder_without_texture_is_tracked_with_a_warning_that_run_repeats(tmp_path):
     """Blank images give no corners: the tracks file is written (it is what the images
     hold), with a warning that names the likely causes, in the statistics, on `vislam

@@ -92,6 +92,7 @@ from vislam.core.sequence import (CAMERA_FRAME_INTERVAL_S, Sequence, StereoObser
 
 __all__ = ["CheckOptions", "Finding", "CheckResult", "Analysis", "ANALYSES", "check_sequence", "estimate_white_noise",
            "estimate_pixel_noise",
+           "stereo_depths", "stereo_depth_finding",
            "in_sync_mask", "usable_observations",
            "SEVERITIES",
            "FINDING_CODES"]
@@ -1034,7 +1035,7 @@ def _analyse_observations(run: _Check) -> Analysis:
         "non_positive_disparity": int(np.count_nonzero(disparity <= 0)),
         "negative_disparity": int(np.count_nonzero(disparity < 0)),
         "duplicated": _duplicate_counts(obs, duplicated)},
-        "stereo_depth": _stereo_depths(run.sequence.camera, disparity, run.base)})
+        "stereo_depth": stereo_depths(run.sequence.camera, disparity, run.base)})
 
 
 #: Factors on the baseline tried when most depths fall outside the filter's depth guards
@@ -1042,17 +1043,19 @@ def _analyse_observations(run: _Check) -> Analysis:
 _BASELINE_FACTORS = (1e-3, 1e-2, 1e-1, 10.0, 100.0, 1000.0)
 
 
-def _stereo_depths(camera, disparity: np.ndarray, base: FilterOptions) -> dict:
+def stereo_depths(camera, disparity: np.ndarray, base: FilterOptions) -> dict:
     """Depths Z = fsu b / d of the observations with positive disparity against the
     filter's depth guards [min_depth_m, max_depth_m] (outside, no landmark starts): their
-    median, 10-90 % range, the share within the guards, and the factor on the baseline
-    (of :data:`_BASELINE_FACTORS`; the one nearest 1 of those that put at least 90 % of
-    the best share within them) with its share, when it does better than the file's."""
+    median, 10-90 % range, the share within the guards, and the factors on the baseline
+    (of :data:`_BASELINE_FACTORS`, in that order) that would put more of them within the
+    guards than the file's, at least half and 90 % of the best factor's share, each with
+    its share. A scene's depth does not say its unit: a plane at one depth fits x 0.001
+    and x 0.01 alike, so every such factor is listed."""
     d = disparity[np.isfinite(disparity) & (disparity > 0)]
     lo, hi = float(base.min_depth_m), float(base.max_depth_m)
     out = {"observations": int(d.size), "baseline_m": float(camera.baseline_m), "fsu_px": float(camera.fsu),
            "guards_m": [lo, hi], "median_m": None, "p10_m": None, "p90_m": None, "within_guards_share": None,
-           "best_baseline_factor": None, "best_factor_within_share": None}
+           "baseline_factors": []}
     if d.size == 0:
         return out
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
@@ -1064,13 +1067,10 @@ def _stereo_depths(camera, disparity: np.ndarray, base: FilterOptions) -> dict:
 
         share = within(1.0)
         shares = {f: within(f) for f in _BASELINE_FACTORS}
-        top = max(shares.values())
-        # the smallest correction of those nearly as good (centimetres: x 0.01, not x 0.001)
-        best = min((f for f in _BASELINE_FACTORS if shares[f] >= 0.9 * top), key=lambda f: abs(np.log10(f)))
+    top = max(shares.values())
     p10, med, p90 = (float(x) for x in np.percentile(z, [10, 50, 90]))
-    out.update(median_m=med, p10_m=p10, p90_m=p90, within_guards_share=share)
-    if shares[best] > share:
-        out.update(best_baseline_factor=best, best_factor_within_share=shares[best])
+    out.update(median_m=med, p10_m=p10, p90_m=p90, within_guards_share=share,
+               baseline_factors=[[f, v] for f, v in shares.items() if v > share and v >= max(0.5, 0.9 * top)])
     return out
 
 
@@ -1515,7 +1515,7 @@ def _analyse_tracker_artifacts(run: _Check) -> Analysis:
                 + ("the filters handle them by default (repeated_observations: auto); nothing to do"
                    if rep_share > 0 else "nothing to do")),
         _disparity_finding(o, run.opts),
-        _stereo_depth_finding(run.est["stereo_depth"], run.opts),
+        stereo_depth_finding(run.est["stereo_depth"], run.opts),
         _duplicate_finding(o["duplicated"])])
 
 
@@ -1538,7 +1538,7 @@ def _disparity_finding(o: dict, opts: CheckOptions) -> Finding:
     return Finding("disparity", severity, text + "; fix the features")
 
 
-def _stereo_depth_finding(z: dict, opts: CheckOptions) -> Finding:
+def stereo_depth_finding(z: dict, opts: CheckOptions) -> Finding:
     """The share of the depths within the filter's depth guards: a baseline in the wrong
     unit puts them all outside, and no landmark ever starts."""
     lo, hi = z["guards_m"]
@@ -1551,11 +1551,11 @@ def _stereo_depth_finding(z: dict, opts: CheckOptions) -> Finding:
     if share >= opts.depth_warn_share:
         return Finding("stereo-depth", "OK", text + "; nothing to do")
     text += ": no landmark can start" if share == 0 else ": the others start no landmark"
-    factor = z["best_baseline_factor"]
-    if factor is not None and z["best_factor_within_share"] >= opts.depth_warn_share:
-        unit = {1e-3: " (millimetres stored as metres?)", 1e-2: " (centimetres stored as metres?)"}.get(factor, "")
-        text += (f"; a baseline of {z['baseline_m'] * factor:.4g} m, the file's x {factor:g}{unit}, would put "
-                 f"{100 * z['best_factor_within_share']:.0f} % within them: check the baseline's unit")
+    units = {1e-3: ", millimetres stored as metres?", 1e-2: ", centimetres stored as metres?"}
+    options = [f"{z['baseline_m'] * f:.4g} m (the file's x {f:g}{units.get(f, '')}) would put {100 * v:.0f} %"
+               for f, v in z["baseline_factors"]]
+    if options:
+        text += f"; a baseline of {' or '.join(options)} within them: check the baseline's unit"
     else:
         text += "; check the baseline and the intrinsics, or the depth guards (min_depth_m, max_depth_m)"
     severity = "ERROR" if share < opts.depth_error_share else "WARN"

@@ -770,12 +770,15 @@ class StereoTracker:
         """
         frame = self._frame(left, right)
         tracks = self._live
-        if len(tracks) and self._prev_left is not None:
-            tracks = self._track_temporal(frame, tracks)
-            tracks = self._track_stereo(frame, tracks)
-            tracks = self._check_geometry(tracks)
-            tracks = self._confirm_suspects(tracks)
-        tracks = tracks.concat(self._new_tracks(frame, tracks))
+        # A calibration with an absurd baseline (1e300 m) overflows the triangulated points'
+        # covariances: no floating-point warnings here; the track command warns of the depths.
+        with np.errstate(over="ignore", invalid="ignore"):
+            if len(tracks) and self._prev_left is not None:
+                tracks = self._track_temporal(frame, tracks)
+                tracks = self._track_stereo(frame, tracks)
+                tracks = self._check_geometry(tracks)
+                tracks = self._confirm_suspects(tracks)
+            tracks = tracks.concat(self._new_tracks(frame, tracks))
         return self._commit(frame, tracks)
 
     def _frame(self, left, right) -> dict:

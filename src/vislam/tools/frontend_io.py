@@ -678,7 +678,7 @@ def track_source(source: StereoSource, options=None, progress=None):
     stats["source"] = str(source.root)
     stats["velocities"] = "given" if source.velocities is not None else f"missing (NaN): {source.velocity_note}"
     stats["options"] = options.to_dict()
-    stats["warnings"] = tracking_warnings(stats)
+    stats["warnings"] = tracking_warnings(stats) + stereo_depth_warnings(sequence)
     for warning in stats["warnings"]:
         logger.info("%s: %s", source.root, warning)  # the commands print it as a warning
     return sequence, stats
@@ -698,6 +698,19 @@ def tracking_warnings(stats: dict) -> list[str]:
                 f"blurred, or not a rectified stereo pair (a point on the same row in both)? The filters will be "
                 f"close to dead reckoning"]
     return []
+
+
+def stereo_depth_warnings(sequence: Sequence) -> list[str]:
+    """``vislam check``'s stereo-depth finding on the tracks, when it is not OK: a baseline
+    in another unit (millimetres in calibration.yaml) puts every triangulated point outside
+    the filter's default depth guards, and no landmark would ever start."""
+    from vislam.core.check import CheckOptions, stereo_depth_finding, stereo_depths
+    from vislam.core.options import FilterOptions
+
+    pixels = sequence.observations.pixels
+    finding = stereo_depth_finding(stereo_depths(sequence.camera, pixels[:, 0] - pixels[:, 2], FilterOptions()),
+                                   CheckOptions())
+    return [] if finding.severity == "OK" else [finding.message]
 
 
 def _count_stats(counts: np.ndarray) -> dict:
