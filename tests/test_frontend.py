@@ -284,6 +284,21 @@ def test_tracker_options_from_file_and_errors(tmp_path):
         TrackerOptions(stereo_window_px=20)
 
 
+#: A complete EuRoC camera sensor.yaml (cam0 of V1_01).
+_EUROC_SENSOR = """T_BS:
+  cols: 4
+  rows: 4
+  data: [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975,
+         0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768,
+        -0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949,
+         0.0, 0.0, 0.0, 1.0]
+resolution: [752, 480]
+intrinsics: [458.654, 457.296, 367.215, 248.375]
+distortion_model: radial-tangential
+distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
+"""
+
+
 def _bad_folders(tmp_path):
     cases = {}
     empty = tmp_path / "nolayout"
@@ -314,16 +329,21 @@ def _bad_folders(tmp_path):
         (drive / cam / "timestamps.txt").write_text(
             "".join(f"2011-09-30 12:00:0{k}.{int((0.1 + offset) * 1e9):09d}\n" for k in range(3)))
     cases["timestamps disagree"] = (drive, "image_01/timestamps.txt: time stamp of frame 0 differs")
-    # EuRoC: a sensor.yaml that is not a mapping, and one without its intrinsics
+    # EuRoC: a sensor.yaml that is not a mapping, one without its intrinsics, with a date, a negative focal
+    # length, and one sensor.yaml for both cameras
     for name, text, needle in (("euroc list", "- 1\n", "sensor.yaml: holds list [1], not a mapping"),
                                ("euroc no intrinsics", "resolution: [752, 480]\n",
                                 "sensor.yaml: key 'intrinsics' is missing; expected 4 finite numbers"),
-                               ("euroc bad date", "date: 2013-13-01\n", "sensor.yaml: invalid YAML (month")):
+                               ("euroc bad date", "date: 2013-13-01\n", "sensor.yaml: invalid YAML (month"),
+                               ("euroc negative focal", _EUROC_SENSOR.replace("[458.654", "[-458.654"),
+                                "focal lengths fu = -458.654"),
+                               # one sensor.yaml for both cameras: no baseline (was an OpenCV traceback)
+                               ("euroc one place", _EUROC_SENSOR, "puts both cameras at the same place")):
         root = tmp_path / name.replace(" ", "_")
         for cam in ("cam0", "cam1"):
             (root / "mav0" / cam / "data").mkdir(parents=True)
             (root / "mav0" / cam / "sensor.yaml").write_text(text)
-            (root / "mav0" / cam / "data.csv").write_text("#timestamp [ns],filename\n")
+            (root / "mav0" / cam / "data.csv").write_text("#timestamp [ns],filename\n1403715273262142976,a.png\n")
         cases[name] = (root, needle)
     return cases
 

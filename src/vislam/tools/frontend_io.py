@@ -416,8 +416,15 @@ def _euroc_camera(cam_dir: Path):
     if model not in ("radial-tangential", "radtan"):
         raise DatasetError(f"{yaml_path}: key 'distortion_model' is {model!r}; expected radial-tangential")
     fu, fv, cu, cv = _yaml_numbers(doc, yaml_path, "intrinsics", 4)
+    if not (fu > 0 and fv > 0):
+        raise DatasetError(f"{yaml_path}: key 'intrinsics' has focal lengths fu = {fu:g}, fv = {fv:g} px; expected "
+                           "[fu, fv, cu, cv] with fu, fv > 0")
     D = _yaml_numbers(doc, yaml_path, "distortion_coefficients", 4)
-    size = tuple(int(v) for v in _yaml_numbers(doc, yaml_path, "resolution", 2))
+    resolution = _yaml_numbers(doc, yaml_path, "resolution", 2)
+    if not np.all((resolution >= 1) & (resolution == np.round(resolution))):
+        raise DatasetError(f"{yaml_path}: key 'resolution' is {resolution.tolist()}; expected [width, height] in "
+                           "whole pixels >= 1")
+    size = tuple(int(v) for v in resolution)
     body_T_cam = _yaml_numbers(doc, yaml_path, "T_BS", 16).reshape(4, 4)
     if not is_rigid_transform(body_T_cam, tol=1e-5):
         raise DatasetError(f"{yaml_path}: key 'T_BS' is not a rigid transform; expected a 4x4 body_T_sensor")
@@ -509,12 +516,23 @@ def _open_euroc(mav0: Path, velocities_csv) -> StereoSource:
     cv2 = require_cv2()
     K0, D0, size0, body_T_cam0, t0, left, in0 = _euroc_camera(mav0 / "cam0")
     K1, D1, size1, body_T_cam1, t1, right, in1 = _euroc_camera(mav0 / "cam1")
+    yaml0, yaml1 = in0[0], in1[0]
     if size0 != size1:
-        raise DatasetError(f"{mav0 / 'cam1' / 'sensor.yaml'}: resolution {size1}; expected cam0's {size0}")
-    left, right, t0 = _euroc_pairs(mav0, left, right, t0, t1)
+        raise DatasetError(f"{yaml0} gives resolution {size0}, {yaml1} {size1}; expected one resolution for both "
+                           "cameras of the stereo pair")
     cam1_T_cam0 = se3_inverse(body_T_cam1) @ body_T_cam0
-    R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(K0, D0, K1, D1, size0, cam1_T_cam0[:3, :3].copy(), cam1_T_cam0[:3, 3].reshape(3, 1).copy(),
-                                                flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
+    gap = float(np.linalg.norm(cam1_T_cam0[:3, 3]))
+    if not gap > 1e-6:
+        raise DatasetError(f"{yaml0} and {yaml1}: key 'T_BS' puts both cameras at the same place ({gap:.2g} m "
+                           "apart); expected a stereo pair with a baseline")
+    left, right, t0 = _euroc_pairs(mav0, left, right, t0, t1)
+    try:
+        R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(K0, D0, K1, D1, size0, cam1_T_cam0[:3, :3].copy(),
+                                                    cam1_T_cam0[:3, 3].reshape(3, 1).copy(),
+                                                    flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
+    except cv2.error as exc:
+        raise DatasetError(f"{yaml0} and {yaml1}: OpenCV cannot rectify this stereo pair "
+                           f"({' '.join(str(exc).split())[-120:]}); expected the calibration of a stereo pair") from None
     maps = tuple(cv2.initUndistortRectifyMap(K, D, R, P[:, :3], size0, cv2.CV_32FC1)
                  for K, D, R, P in ((K0, D0, R1, P1), (K1, D1, R2, P2)))
     K = P1[:, :3].copy()
