@@ -93,6 +93,12 @@ def test_precedence_defaults_file_flags(tmp_path):
         ("range.yaml", "gating_probability: 1.5\n", ["gating_probability"]),
         ("choice.toml", 'ekf = "fancy"\n', ["ekf", "fancy"]),
         ("negative.yaml", "angular_noise_radps: -0.1\n", ["angular_noise_radps"]),
+        # 1σ's whose squares overflow or underflow (were a traceback or a numerical failure)
+        ("huge_pixel.yaml", "pixel_noise_px: 1e300\n", ["pixel_noise_px", "1e+06"]),
+        ("tiny_pixel.yaml", "pixel_noise_px: 1e-300\n", ["pixel_noise_px", "1e-06"]),
+        ("huge_velocity.yaml", "velocity_noise_mps: [0.1, 1e300, 0.1]\n", ["velocity_noise_mps", "1e+06"]),
+        ("huge_bias.toml", "imu_bias_sigma_mps = 1e300\n", ["imu_bias_sigma_mps", "1e+06"]),
+        ("huge_prior.yaml", "initial_position_std_m: 1e200\n", ["initial_position_std_m", "1e+06"]),
         ("syntax.yaml", "velocity_noise_mps: [0.5\n", ["invalid YAML"]),
         ("syntax.toml", "velocity_noise_mps = \n", ["invalid TOML"]),
         # scalars PyYAML resolves but its constructors cannot convert (were tracebacks)

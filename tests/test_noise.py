@@ -142,6 +142,8 @@ def test_zero_spec_returns_the_sequence_unchanged(short_drive):
     ({"velocity_bias_mps": (0.1, 0.2)}, "velocity_bias_mps"),
     ({"angular_bias_radps": (0, 0, math.nan)}, "angular_bias_radps"),
     ({"angular_bias_radps": 0.1}, "angular_bias_radps"),
+    ({"velocity_noise_mps": 1e300}, "velocity_noise_mps must be at most 1e"),  # overflowed the filter's state
+    ({"velocity_bias_mps": (0, 1e300, 0)}, "velocity_bias_mps must be within"),
     ({"seed": -1}, "seed"),
     ({"seed": 1.5}, "seed"),
     ({"seed": True}, "seed"),

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from vislam.core.options import MAX_STD
 from vislam.core.sequence import Sequence, StereoObservations
 from vislam.errors import ConfigError
 
@@ -61,10 +62,14 @@ class NoiseSpec:
                     raise ConfigError(f"{f.name} must be three numbers, got {v!r}") from None
                 if len(t) != 3 or not all(math.isfinite(x) for x in t):
                     raise ConfigError(f"{f.name} must be three finite numbers, got {v!r}")
+                if max(abs(x) for x in t) > MAX_STD:
+                    raise ConfigError(f"{f.name} must be within ±{MAX_STD:g}, got {v!r}")
                 object.__setattr__(self, f.name, t)
             else:
                 if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                     raise ConfigError(f"{f.name} must be a finite number >= 0, got {v!r}")
+                if v > MAX_STD:  # (1e300 m/s overflows the filter's state)
+                    raise ConfigError(f"{f.name} must be at most {MAX_STD:g}, got {v!r}")
         if self.outlier_fraction >= 1.0:
             raise ConfigError(f"outlier_fraction must be in [0, 1), got {self.outlier_fraction!r}")
 

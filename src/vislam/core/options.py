@@ -187,6 +187,15 @@ class _Group:
 POSITIVE = {"range": (0, None), "open": (True, False)}
 NON_NEGATIVE = {"range": (0, None)}
 PROBABILITY = {"range": (0, 1), "open": (True, True)}
+#: Largest 1σ of a noise or prior option, in its unit (m/s, rad/s, px, m, rad, m/s²):
+#: 1e6 is no information at all, and far larger ones (1e300) overflow the squares and
+#: products of the covariances. The smallest 1σ of a pixel noise: its square must keep V
+#: positive-definite (1e-300 px underflows to V = 0).
+MAX_STD = 1e6
+MIN_PIXEL_STD = 1e-6
+#: ``**STD``: a 1σ >= 0 and at most MAX_STD; ``**PIXEL_STD``: in [MIN_PIXEL_STD, MAX_STD].
+STD = {"range": (0, MAX_STD)}
+PIXEL_STD = {"range": (MIN_PIXEL_STD, MAX_STD)}
 
 
 @dataclass(frozen=True)
@@ -201,11 +210,11 @@ class NoiseOptions(_Group):
         0.0003, "1σ error of one angular-velocity sample per axis; one number or three (IMU x, y, z)",
         unit="rad/s", kind="per_axis", flat="angular_noise_radps")
     pixel_px: float = option(2.0, "1σ error of one pixel coordinate of a stereo observation (V = σ² I₄)",
-                             unit="px", **POSITIVE, flat="pixel_noise_px",
+                             unit="px", **PIXEL_STD, flat="pixel_noise_px",
                              note="the update needs a positive-definite V")
     initial_position_std_m: float = option(0.0, "1σ of the initial position (the world frame is the first IMU "
-                                           "pose, so 0 is exact)", unit="m", **NON_NEGATIVE)
-    initial_rotation_std_rad: float = option(0.0, "1σ of the initial orientation", unit="rad", **NON_NEGATIVE)
+                                           "pose, so 0 is exact)", unit="m", **STD)
+    initial_rotation_std_rad: float = option(0.0, "1σ of the initial orientation", unit="rad", **STD)
 
 
 @dataclass(frozen=True)
@@ -237,9 +246,9 @@ class LandmarkOptions(_Group):
                           "report's proposed fix for moving landmarks; Cartesian)", kind="bool",
                           flat="landmark_motion")
     velocity_std_mps: float = option(2.0, "prior 1σ of a new landmark's velocity per axis (motion model only)",
-                                     unit="m/s", **NON_NEGATIVE, flat="landmark_velocity_std_mps")
+                                     unit="m/s", **STD, flat="landmark_velocity_std_mps")
     acceleration_std_mps2: float = option(1.0, "1σ of a landmark's acceleration per axis, process noise (motion "
-                                          "model only)", unit="m/s²", **NON_NEGATIVE,
+                                          "model only)", unit="m/s²", **STD,
                                           flat="landmark_acceleration_std_mps2")
 
     def _check(self) -> None:
@@ -360,7 +369,7 @@ class SmootherOptions(_Group):
                              "long are marginalized", unit="s", **POSITIVE,
                              flat="smoother_window_s")
     pixel_noise_px: float | None = option(1.0, "1σ of one pixel coordinate in the smoother's stereo factors "
-                                          "(null: pixel_noise_px)", unit="px", **POSITIVE,
+                                          "(null: pixel_noise_px)", unit="px", **PIXEL_STD,
                                           optional=True, flat="smoother_pixel_noise_px")
     kernel: str = option("cauchy", "robust kernel of the stereo factors", kind="choice", choices=KERNELS,
                          flat="smoother_kernel")
@@ -701,16 +710,19 @@ def _three_numbers(name: str, value) -> tuple[float, float, float]:
 
 
 def _per_axis(name: str, value):
-    """A number >= 0 stays a number; three numbers >= 0 become a tuple."""
+    """A 1σ in [0, MAX_STD] stays a number; three of them become a tuple."""
     if isinstance(value, (list, tuple, np.ndarray)):
         out = _three_numbers(name, value)
-        if min(out) < 0:
-            raise ConfigError(f"{name} must be >= 0 on every axis, got {value!r}")
+        if min(out) < 0 or max(out) > MAX_STD:
+            raise ConfigError(f"{name} must be in [0, {MAX_STD:g}] on every axis, got {value!r}")
         return out
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ConfigError(f"{name} must be a finite number or three finite numbers (x, y, z), got {value!r}")
     if value < 0:
         raise ConfigError(f"{name} must be >= 0, got {value!r}")
+    if value > MAX_STD:
+        raise ConfigError(f"{name} must be at most {MAX_STD:g} (no information at all; larger ones overflow the "
+                          f"covariances), got {value!r}")
     return value
 
 

@@ -395,14 +395,20 @@ def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
     of the pose's and of each observed landmark's Mahalanobis norm (marginal blocks)."""
     P = state.cov
     pose = dx[:POSE_DIM]
-    size = float(pose @ np.linalg.solve(P[:POSE_DIM, :POSE_DIM], pose))
+    try:
+        size = float(pose @ np.linalg.solve(P[:POSE_DIM, :POSE_DIM], pose))
+    except np.linalg.LinAlgError:  # a singular block (zero IMU noise): the step lies in its range
+        size = float(pose @ np.linalg.lstsq(P[:POSE_DIM, :POSE_DIM], pose, rcond=None)[0])
     if len(slots):
         rows = state.landmark_rows(slots)
         if rows.shape[1] != 3:
             rows = rows[:, :3]  # (k, 3) position rows
         P_ll = P[rows[:, :, None], rows[:, None, :]]
         e = dx[rows]
-        q = np.einsum("ki,ki->k", e, np.linalg.solve(P_ll, e[:, :, None])[:, :, 0])
+        try:
+            q = np.einsum("ki,ki->k", e, np.linalg.solve(P_ll, e[:, :, None])[:, :, 0])
+        except np.linalg.LinAlgError:
+            q = np.array([float(ek @ np.linalg.lstsq(Pk, ek, rcond=None)[0]) for Pk, ek in zip(P_ll, e)])
         size = max(size, q.max().item())  # (the method: np.max's dispatch costs more than the reduction)
     return math.sqrt(max(size, 0.0))
 
