@@ -448,6 +448,21 @@ def test_cli_bad_option_one_line_error(tmp_path, bad):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("argv", [["demo", "--frames", "100000"], ["consistency", "--frames", "100000", "--sequential"],
+                                  ["report", "--sim-frames", "5000", "--data", "."]])
+def test_every_command_that_simulates_refuses_a_drive_beyond_the_memory_limit(tmp_path, capsys, argv):
+    """demo, consistency and report simulate too: a drive of 100,000 frames (3 TB) was
+    killed by the kernel after minutes; it is a one-line error naming the flag, at once,
+    with nothing written."""
+    from vislam.cli import main
+
+    out = tmp_path / "out"
+    assert main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{argv[1]} {argv[2]}: simulating it would need" in err, err
+    assert "simulate at most 2516 frames" in err and not out.exists()
+
+
 def test_simulate_refuses_a_drive_beyond_its_memory_limit_before_simulating(tmp_path, monkeypatch, capsys):
     # issue 22.8: --frames 10000 peaked at ~30 GB (0.3 GB x (frames/1000)^2) and refused only after simulating
     from vislam.cli import main
@@ -463,4 +478,6 @@ def test_simulate_refuses_a_drive_beyond_its_memory_limit_before_simulating(tmp_
     assert len(err.splitlines()) == 1 and "--frames 10000" in err and "--max-memory 2 GB" in err
     assert not out.exists()
     assert main(["simulate", "--frames", "600", "--max-memory", "0.1", "--out", str(out)]) == 2
-    assert cli_simulate.estimated_peak_gb(2500) <= cli_simulate.MEMORY_LIMIT_GB < cli_simulate.estimated_peak_gb(2600)
+    from vislam.core.simulate import MEMORY_LIMIT_GB, estimated_peak_gb
+
+    assert estimated_peak_gb(2500) <= MEMORY_LIMIT_GB < estimated_peak_gb(2600)

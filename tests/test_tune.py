@@ -142,7 +142,9 @@ def test_cli_tune_writes_a_config_that_vislam_run_loads(drive, tmp_path, capsys)
     (["{data}", "--frames", "1"], "--frames must be >= 2"),
     (["{data}", "--config", "{tmp}/missing.yaml"], "missing.yaml"),
     (["{data}", "--sequential", "--scheduler", "tcp://127.0.0.1:9"], "exclude each other"),
-    (["{data}", "--grid", "1"], "--grid must be >= 2"),
+    (["{data}", "--grid", "1"], "--grid must be in [2, 30]"),
+    (["{data}", "--grid", "1000000"], "--grid must be in [2, 30]"),  # 1e12 runs: it ran for ever
+    (["{data}", "--refine", "500"], "--refine in [0, 20]"),
 ])
 def test_cli_tune_bad_input_is_one_line_exit_2(drive, tmp_path, capsys, args, expected):
     path = tmp_path / "sim.npz"

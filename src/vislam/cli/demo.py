@@ -58,11 +58,12 @@ def run(args) -> int:
 def _run(args, figures) -> int:
     from vislam.core.estimators import run as run_estimator
     from vislam.core.options import FilterOptions
-    from vislam.core.simulate import SimulationOptions, simulate_drive
+    from vislam.core.simulate import SimulationOptions, check_simulation_memory, simulate_drive
     from vislam.tools.outputs import OutputStage, command_start_time, write_demo_outputs
 
     start_time = command_start_time() or _COMMAND_START
     sim_options = SimulationOptions(seed=args.seed, n_frames=args.frames, **DEMO_NOISE)  # ConfigError if bad
+    check_simulation_memory(sim_options.n_frames, "--frames")
     filter_options = FilterOptions(velocity_noise_mps=DEMO_NOISE["velocity_noise_mps"],
                                    angular_noise_radps=DEMO_NOISE["angular_noise_radps"])
     figures.start()  # its helper process imports matplotlib while this one simulates and filters

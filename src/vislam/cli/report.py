@@ -83,6 +83,9 @@ def run(args) -> int:
 
     if args.sim_frames < 0 or args.sim_frames == 1:
         raise ConfigError(f"--sim-frames must be 0 (no simulation) or at least 2, got {args.sim_frames}")
+    from vislam.core.simulate import check_simulation_memory
+
+    check_simulation_memory(args.sim_frames, "--sim-frames")
     settings = ReportSettings(simulation_frames=args.sim_frames, smoother=not args.no_smoother)
     if args.noise_levels is not None:
         settings = dataclasses.replace(settings, noise_levels=args.noise_levels)

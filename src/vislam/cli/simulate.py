@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from vislam.core.simulate import SimulationOptions, simulate_drive
+from vislam.core.simulate import MEMORY_LIMIT_GB, SimulationOptions, check_simulation_memory, simulate_drive
 from vislam.errors import ConfigError
 from vislam.tools.simulate_io import write_simulated_drive
 
@@ -132,27 +132,9 @@ def format_summary(stats, paths) -> str:
     return "\n".join(lines)
 
 
-#: The default limit of ``--max-memory`` (GB).
-MEMORY_LIMIT_GB = 2.0
-
-
-def estimated_peak_gb(n_frames: int) -> float:
-    """Peak memory of ``vislam simulate --frames N`` with the default scene (GB). The
-    landmarks grow with the drive, and the simulator's track generation and the dense
-    ``features`` array of the npz hold landmarks x frames, so it grows as N²: measured
-    0.21 / 0.55 / 1.9 / 7.3 GB at 600 / 1,250 / 2,500 / 5,000 frames (peak RSS,
-    /usr/bin/time)."""
-    return 0.1 + 0.3 * (n_frames / 1000.0) ** 2
-
-
 def run(args) -> int:
     options = options_from_args(args)
-    need = estimated_peak_gb(options.n_frames)
-    if need > args.max_memory:
-        most = int(1000 * ((args.max_memory - 0.1) / 0.3) ** 0.5) if args.max_memory > 0.1 else 0
-        raise ConfigError(f"--frames {options.n_frames}: simulating it would need about {need:.1f} GB of memory "
-                          f"(it grows with the square of the frames: landmarks x frames), more than --max-memory "
-                          f"{args.max_memory:g} GB; simulate at most {most} frames, or raise --max-memory")
+    check_simulation_memory(options.n_frames, "--frames", args.max_memory, "--max-memory")
     drive = simulate_drive(options)
     if getattr(args, "images", False):
         from vislam.cli.common import make_progress

@@ -39,12 +39,12 @@ def register(subparsers) -> None:
     parser.add_argument("--frames", type=int, metavar="N",
                         help="score each candidate on the first N frames only (cheaper; default: all)")
     parser.add_argument("--grid", type=int, default=4, metavar="N",
-                        help="points of the coarse log grid per IMU noise and of the pixel-noise line (default 4: "
-                        "16 + 4 runs)")
+                        help="points of the coarse log grid per IMU noise and of the pixel-noise line, 2 to 30 "
+                        "(default 4: 16 + 4 runs)")
     parser.add_argument("--refine", type=int, default=3, metavar="N",
                         help="step sizes of the compass search after the grid (each half the one before; a step is "
-                        "polled, 4-8 runs a round, until a round no longer improves the best; default 3, at most 10 "
-                        "rounds)")
+                        "polled, 4-8 runs a round, until a round no longer improves the best; 0 to 20, default 3, at "
+                        "most 10 rounds)")
     parser.add_argument("--pixel-noise", choices=["keep", "tune"], default="keep",
                         help="keep (default): search the IMU noise only, with the options file's (or the default) "
                         "pixel_noise_px; tune: search it too (the robust likelihood drives it to the bottom of its "
@@ -68,6 +68,13 @@ def _base_options(config) -> dict:
     return {k: full[k] for k in keys}
 
 
+#: Largest --grid: its square is the coarse round's runs (--grid 1000000 ran for ever).
+MAX_GRID = 30
+#: Largest --refine: step sizes halve each time, 2^-20 of the coarse spacing is far below
+#: what an innovation likelihood can tell apart.
+MAX_REFINE = 20
+
+
 def run(args) -> int:
     from vislam.cli.common import configure_dask_logging, terminate_as_interrupt
     from vislam.errors import ConfigError, DatasetError, OutputError
@@ -87,8 +94,10 @@ def run(args) -> int:
         raise ConfigError(f"--frames must be >= 2, got {args.frames}")
     if args.sequential and args.scheduler:
         raise ConfigError("--sequential and --scheduler exclude each other")
-    if args.grid < 2 or args.refine < 0:
-        raise ConfigError(f"--grid must be >= 2 and --refine >= 0, got {args.grid} and {args.refine}")
+    if not (2 <= args.grid <= MAX_GRID and 0 <= args.refine <= MAX_REFINE):
+        raise ConfigError(f"--grid must be in [2, {MAX_GRID}] (its square is the first round's runs: "
+                          f"{MAX_GRID ** 2} at most) and --refine in [0, {MAX_REFINE}] (each step half the one "
+                          f"before), got {args.grid} and {args.refine}")
     base = _base_options(args.config)
     if args.pixel_noise == "keep":
         from vislam.core.options import FilterOptions

@@ -59,6 +59,9 @@ class ConsistencySettings:
             raise ConfigError(f"--runs must be an integer >= 1, got {self.runs!r}")
         if isinstance(self.frames, bool) or not isinstance(self.frames, int) or self.frames < 10:
             raise ConfigError(f"--frames must be an integer >= 10, got {self.frames!r}")
+        from vislam.core.simulate import check_simulation_memory
+
+        check_simulation_memory(self.frames, "--frames")  # per run; say it before any worker starts
         if self.first_seed < 0:
             raise ConfigError(f"--first-seed must be >= 0, got {self.first_seed!r}")
         if self.filter_noise not in FILTER_NOISE_CHOICES:
