@@ -249,3 +249,21 @@ def test_adaptive_iterated_update_is_the_fixed_one_stopped_at_convergence(model)
             assert np.allclose(fixed.imu_T_world, adaptive.imu_T_world, atol=1e-10)
             assert np.allclose(fixed.lm_mean, adaptive.lm_mean, atol=1e-10)
             assert np.allclose(fixed.cov, adaptive.cov, atol=1e-12, rtol=1e-8)
+
+
+@pytest.mark.parametrize("changes, words", [
+    (dict(pixel_noise_px=1e300), "--sim-pixel-noise must be a finite number in [0, 1e+06]"),
+    (dict(pixel_noise_px=0.0), "--sim-pixel-noise must be at least 1e-06 px"),
+    (dict(velocity_noise_mps=-1.0), "--sim-velocity-noise"),
+    (dict(frames=100000), "--frames 100000: simulating it would need about"),
+])
+def test_bad_settings_name_their_flag_before_any_run(changes, words):
+    """Each bad setting is a ConfigError naming the command's flag, raised by the settings
+    themselves (before a worker starts); a pixel noise of 1e300 used to fail every run with
+    the filter's pixel_noise_px message."""
+    from vislam.errors import ConfigError
+    from vislam.tools.consistency import ConsistencySettings
+
+    with pytest.raises(ConfigError) as info:
+        ConsistencySettings(**changes)
+    assert words in str(info.value)

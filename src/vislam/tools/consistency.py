@@ -71,12 +71,16 @@ class ConsistencySettings:
 
         if self.mode not in CONSISTENCY_MODES:
             raise ConfigError(f"--mode must be one of {', '.join(CONSISTENCY_MODES)}, got {self.mode!r}")
-        for name in ("velocity_noise_mps", "angular_noise_radps", "pixel_noise_px"):
+        from vislam.core.options import MAX_STD, MIN_PIXEL_STD
+
+        flags = {"velocity_noise_mps": "--sim-velocity-noise", "angular_noise_radps": "--sim-angular-noise",
+                 "pixel_noise_px": "--sim-pixel-noise"}
+        for name, flag in flags.items():
             value = getattr(self, name)
-            if not np.isfinite(value) or value < 0:
-                raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
-        if self.pixel_noise_px <= 0:
-            raise ConfigError("pixel_noise_px must be > 0")
+            if not np.isfinite(value) or value < 0 or value > MAX_STD:
+                raise ConfigError(f"{flag} must be a finite number in [0, {MAX_STD:g}], got {value!r}")
+        if self.pixel_noise_px < MIN_PIXEL_STD:  # the filter is told it (--filter-noise true): V = σ² I must be PD
+            raise ConfigError(f"--sim-pixel-noise must be at least {MIN_PIXEL_STD:g} px, got {self.pixel_noise_px!r}")
 
     def simulation_options(self, seed: int):
         from vislam.core.simulate import SimulationOptions
