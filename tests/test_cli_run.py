@@ -127,6 +127,28 @@ def _bad_inputs(tmp_path, data, drive):
     }
 
 
+@pytest.mark.parametrize("argv, named", [
+    (["run", "{data}", "--out", ""], "--out is empty; expected DIR"),  # `--out "$OUT"`, OUT unset: was the cwd
+    (["run", "{data}", "--out", "{tmp}/o", "--gt", ""], "--gt is empty; expected FILE"),  # was: no evaluation
+    (["run", " ", "--out", "{tmp}/o"], "the DATA argument is empty; expected a path"),
+    (["compare", "{data}", "--out", "{tmp}/o", "--config", ""], "--config is empty; expected FILE"),
+    (["eval", "{tmp}/a.tum", "", "--out", "{tmp}/o"], "the GT argument is empty"),
+    (["sweep", "", "--out", "{tmp}/o"], "the SPEC argument is empty"),
+])
+def test_an_empty_path_argument_is_a_one_line_error(tmp_path, sim, monkeypatch, capsys, argv, named):
+    """An empty string where a path is expected is refused before anything runs: the
+    current directory stays empty and no output folder is made."""
+    data, _ = sim
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    argv = [a.format(data=data, tmp=tmp_path) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and named in err, err
+    assert not list(cwd.iterdir()) and not (tmp_path / "o").exists()
+
+
 def test_bad_inputs_give_one_line_and_no_output(tmp_path, sim):
     data, drive = sim
     cases = _bad_inputs(tmp_path, data, drive)

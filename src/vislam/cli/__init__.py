@@ -124,6 +124,27 @@ def _configure_logging(verbosity: int) -> None:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
 
 
+#: String arguments that may be empty (a figure title).
+_MAY_BE_EMPTY = ("title",)
+
+
+def _empty_argument(parser, args) -> tuple[str, str] | None:
+    """(flag or positional's name, what it expects: its metavar) of the command's first
+    string argument given as an empty or blank string, else None."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            sub = action.choices.get(args.command)
+            for a in sub._actions if sub is not None else ():
+                value = getattr(args, a.dest, None)
+                if isinstance(value, str) and not value.strip() and value != a.default and a.dest not in _MAY_BE_EMPTY:
+                    if a.option_strings:
+                        return a.option_strings[-1], a.metavar or "a value"
+                    return f"the {a.metavar or a.dest} argument", "a path"
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(_command_of(argv))
@@ -135,6 +156,10 @@ def main(argv: list[str] | None = None) -> int:
         if hasattr(stream, "reconfigure"):
             stream.reconfigure(errors=TEXT_ERRORS)
     _configure_logging(args.verbose)
+    empty = _empty_argument(parser, args)
+    if empty:  # `--out "$OUT"` with OUT unset: not the current directory, not "no ground truth"
+        print(f"vislam {args.command}: error: {empty[0]} is empty; expected {empty[1]}", file=sys.stderr)
+        return 2
     try:
         return int(args.func(args) or 0)
     except VislamError as exc:
