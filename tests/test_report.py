@@ -264,3 +264,26 @@ def test_slam_beats_separately_says_it_by_each_metric():
     assert slam_beats_separately(row(13.75, 7.94), row(17.07, 6.08)) == "ATE no, KITTI t yes"
     assert slam_beats_separately(row(None, None, 3.0, 2.0), row(None, None, 2.0, 1.0)) == "ATE yes, KITTI t yes"
     assert slam_beats_separately(row(None, None), row(None, None)) == "n/a"
+
+
+def test_discovery_takes_upper_case_npz_and_notes_what_it_cannot_use(tmp_path):
+    """`0100.NPZ` is a dataset (it was "no usable dataset"); a ground-truth path that is a
+    directory, and a ground truth that covers few of the frames, are said in the notes
+    instead of being dropped or used silently."""
+    from vislam.tools.report import _load_inputs, discover_datasets
+
+    drive = simulate_drive(SimulationOptions(n_frames=30, seed=4))
+    root = tmp_path / "data"
+    (root / "sparse").mkdir(parents=True)
+    (root / "groundtruth" / "0102.txt").mkdir(parents=True)  # a directory, not a file
+    save_sequence(drive.sequence, root / "sparse" / "0100.npz")
+    (root / "sparse" / "0100.npz").rename(root / "sparse" / "0100.NPZ")
+    save_sequence(drive.sequence, root / "sparse" / "0102.npz")
+    cam_T_imu = drive.sequence.cam_T_imu
+    write_kitti(root / "groundtruth" / "0100.txt", (cam_T_imu @ drive.world_T_imu @ se3_inverse(cam_T_imu))[:5])
+    found, notes = discover_datasets(root)
+    assert sorted(d.path.name for d in found) == ["0100.NPZ", "0102.npz"]
+    assert any("0102.txt: is not a file" in n for n in notes)
+    usable = _load_inputs(found, notes)
+    assert len(usable) == 2
+    assert any("covers 5 of the 30 frames" in n and "0100.NPZ" in n for n in notes)

@@ -147,10 +147,16 @@ def load_run_ground_truth(path, sequence: Sequence, fmt: str = "auto", frame: st
     """
     gt = load_ground_truth(path, fmt, frame, sequence.cam_T_imu,
                            cam_T_imu_source=f"dataset {sequence.source or sequence.name}")
+    ground_truth_pairs(gt, sequence, max_diff_s)
+    return gt
+
+
+def ground_truth_pairs(ground_truth: TrajectoryFile, sequence: Sequence, max_diff_s: float = DEFAULT_MAX_DIFF_S) -> int:
+    """How many of the frames of ``sequence`` have a pose in ``ground_truth`` (GroundTruthError
+    when fewer than 2 do)."""
     probe = TrajectoryFile(np.broadcast_to(np.eye(4), (sequence.n_frames, 4, 4)).copy(), sequence.timestamps_s.copy(),
                            "tum", f"{sequence.source or sequence.name} (frame times)")
-    associate(probe, gt, sequence.timestamps_s, max_diff_s)
-    return gt
+    return associate(probe, ground_truth, sequence.timestamps_s, max_diff_s).n_pairs
 
 
 def evaluate_run(result: RunResult, ground_truth: TrajectoryFile, sequence: Sequence,

@@ -73,11 +73,13 @@ from vislam.tools.comparison import (
     describe_filter_noise,
     describe_noise,
     evaluate_run,
+    ground_truth_pairs,
     load_run_ground_truth,
     run_comparison,
     stage_evaluation,
     write_comparison,
 )
+from vislam.tools.evaluation import MIN_COVERAGE
 from vislam.tools.outputs import FIGURE, OutputStage, command_start_time, write_run_outputs
 from vislam.tools.trajectory_io import TrajectoryFile
 
@@ -233,11 +235,13 @@ def discover_datasets(data_dir) -> tuple[list[DatasetInput], list[str]]:
         if not folder.is_dir():
             notes.append(f"{folder}: not found; no {kind} datasets")
             continue
-        files = sorted(p for p in folder.iterdir() if p.suffix == ".npz" and p.is_file())
+        files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".npz" and p.is_file())
         if not files:
             notes.append(f"{folder}: no .npz dataset in it")
         for p in files:
             gt = gt_dir / f"{p.stem}.txt"
+            if gt.exists() and not gt.is_file():
+                notes.append(f"{gt}: is not a file; no ground truth for {p}")
             found.append(DatasetInput(kind, p, ground_truth_path=gt if gt.is_file() else None))
     if not gt_dir.is_dir():
         notes.append(f"{gt_dir}: not found; no metrics against ground truth")
@@ -639,6 +643,11 @@ def _load_inputs(inputs: list[DatasetInput], notes: list[str], cache_dir: Path |
                 d.ground_truth = load_run_ground_truth(d.ground_truth_path, d.sequence, "kitti", "cam")
             except VislamError as exc:
                 notes.append(f"ground truth {d.ground_truth_path} not used for {d.path}: {exc}")
+            else:
+                n = ground_truth_pairs(d.ground_truth, d.sequence)
+                if n < MIN_COVERAGE * d.sequence.n_frames:
+                    notes.append(f"ground truth {d.ground_truth_path} covers {n} of the {d.sequence.n_frames} frames "
+                                 f"of {d.path}: its metrics are over those frames only")
         usable.append(d)
     return usable
 
