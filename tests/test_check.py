@@ -628,3 +628,17 @@ def test_a_baseline_in_another_unit_is_an_error_with_the_factor(clean_check, fac
     assert z["within_guards_share"] < 0.1
     assert any(z["baseline_m"] * f == pytest.approx(cam.baseline_m) for f, _ in z["baseline_factors"])
     assert z["median_m"] == pytest.approx(depth["median_m"] * factor)
+
+
+def test_velocities_that_are_all_zero_are_named(clean_check):
+    """Velocities missing and filled with zeros: every linear sample exactly 0 is an
+    ERROR, every angular one a WARN; the clean drive's samples are OK."""
+    drive, result = clean_check
+    assert _severity(result, "imu-samples") == "OK"
+    seq = drive.sequence
+    no_speed = seq.replace(linear_velocity_in_imu_mps=np.zeros_like(seq.linear_velocity_in_imu_mps))
+    finding = check_sequence(no_speed, FAST).finding("imu-samples")
+    assert finding.severity == "ERROR" and f"all {seq.n_frames} linear-velocity samples are exactly 0" in finding.message
+    no_turn = seq.replace(angular_velocity_in_imu_radps=np.zeros_like(seq.angular_velocity_in_imu_radps))
+    finding = check_sequence(no_turn, FAST).finding("imu-samples")
+    assert finding.severity == "WARN" and "angular-rate samples are exactly 0" in finding.message

@@ -101,7 +101,7 @@ logger = logging.getLogger(__name__)
 
 SEVERITIES = ("OK", "WARN", "ERROR")
 #: Stable codes of the findings, in the order they are reported.
-FINDING_CODES = ("timestamps", "imu-camera-rotation", "imu-camera-translation", "velocity-association",
+FINDING_CODES = ("timestamps", "imu-samples", "imu-camera-rotation", "imu-camera-translation", "velocity-association",
                  "velocity-scale", "time-offset", "imu-bias", "noise", "pixel-noise", "reprojection", "repeated-observations", "disparity",
                  "stereo-depth", "duplicate-observations")
 
@@ -1089,15 +1089,35 @@ def _duplicate_counts(obs, duplicated: np.ndarray) -> dict:
     return out
 
 
+def _imu_samples_finding(u: np.ndarray) -> Finding:
+    """Velocities that are exactly 0 in every sample: no sensor reads that, a file whose
+    velocities were missing and filled with zeros does (the filters would see a vehicle
+    standing still, or never turning)."""
+    n = u.shape[0]
+    linear, angular = bool(n and not np.any(u[:, :3])), bool(n and not np.any(u[:, 3:]))
+    if linear:
+        return Finding("imu-samples", "ERROR",
+                       f"all {n} linear-velocity samples are exactly 0{' (and the angular rates too)' if angular else ''}"
+                       ": no sensor reads that; were the velocities missing and filled with zeros? The filters would "
+                       "see a vehicle standing still")
+    if angular:
+        return Finding("imu-samples", "WARN", f"all {n} angular-rate samples are exactly 0: no gyro reads that; were "
+                                              "the rates missing and filled with zeros? The filters would see a "
+                                              "vehicle that never turns")
+    return Finding("imu-samples", "OK", "the velocity samples vary; nothing to do")
+
+
 def _analyse_imu_noise(run: _Check) -> Analysis:
-    """IMU white noise per axis against the filter's noise model."""
+    """IMU white noise per axis against the filter's noise model (and samples that are
+    all exactly 0)."""
     u, opts, base = run.u, run.opts, run.base
     sv, sv_se = estimate_white_noise(u[:, :3])
     sw, sw_se = estimate_white_noise(u[:, 3:])
     run.sv, run.sw = sv, sw
     out = Analysis({"imu_noise": {"velocity_mps": sv.tolist(), "velocity_mps_se": sv_se.tolist(),
                                   "angular_radps": sw.tolist(), "angular_radps_se": sw_se.tolist(),
-                                  "method": "variogram nugget (quadratic fit of lags 1-6), per axis"}})
+                                  "method": "variogram nugget (quadratic fit of lags 1-6), per axis"}},
+                   [_imu_samples_finding(u)])
     default_v = base.velocity_noise_per_axis
     default_w = base.angular_noise_per_axis
     corrupt = imu_samples_beyond_limits(u[:, :3], u[:, 3:])
