@@ -642,3 +642,20 @@ def test_velocities_that_are_all_zero_are_named(clean_check):
     no_turn = seq.replace(angular_velocity_in_imu_radps=np.zeros_like(seq.angular_velocity_in_imu_radps))
     finding = check_sequence(no_turn, FAST).finding("imu-samples")
     assert finding.severity == "WARN" and "angular-rate samples are exactly 0" in finding.message
+
+
+def test_rows_that_disagree_are_an_error(clean_check):
+    """A pair that is not rectified (every vR 20 px below vL) starts no landmark: an
+    ERROR naming the row guard; the clean drive's rows agree (OK)."""
+    drive, result = clean_check
+    assert _severity(result, "stereo-rows") == "OK"
+    seq = drive.sequence
+    obs = seq.observations
+    from vislam.core.sequence import StereoObservations
+
+    pixels = obs.pixels.copy()
+    pixels[:, 3] = pixels[:, 1] + 20.0
+    shifted = seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels,
+                                                          obs.n_landmarks))
+    finding = check_sequence(shifted, FAST).finding("stereo-rows")
+    assert finding.severity == "ERROR" and "100.0 %" in finding.message and "median 20 px" in finding.message

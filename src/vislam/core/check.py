@@ -103,7 +103,7 @@ SEVERITIES = ("OK", "WARN", "ERROR")
 #: Stable codes of the findings, in the order they are reported.
 FINDING_CODES = ("timestamps", "imu-samples", "imu-camera-rotation", "imu-camera-translation", "velocity-association",
                  "velocity-scale", "time-offset", "imu-bias", "noise", "pixel-noise", "reprojection", "repeated-observations", "disparity",
-                 "stereo-depth", "duplicate-observations")
+                 "stereo-rows", "stereo-depth", "duplicate-observations")
 
 
 @dataclass(frozen=True)
@@ -134,9 +134,10 @@ class CheckOptions:
     velocity_scale_range: tuple[float, float] = (0.2, 5.0)
     #: A factor further than this from 1 (and beyond 3σ) is reported and corrected.
     velocity_scale_warn: float = 0.05
-    #: Shares of the observations with non-positive disparity above which the disparity
+    #: Shares of the observations with non-positive disparity (and of those whose rows
+    #: differ beyond the filter's row guard) above which the disparity (stereo-rows)
     #: finding is a WARN and an ERROR. The shared files have 0-0.3 %, sparse 0042 (a
-    #: highway: far points) 6.5 %; exchanged left and right pixels, 100 %.
+    #: highway: far points) 6.5 % (rows: 0 %); exchanged left and right pixels, 100 %.
     disparity_warn_share: float = 0.2
     disparity_error_share: float = 0.5
     #: Shares of the triangulated depths within the filter's depth guards below which the
@@ -1034,8 +1035,18 @@ def _analyse_observations(run: _Check) -> Analysis:
         "repeated_share": float(np.mean(repeated)) if obs.n_observations else 0.0, "repeat_evidence": evidence,
         "non_positive_disparity": int(np.count_nonzero(disparity <= 0)),
         "negative_disparity": int(np.count_nonzero(disparity < 0)),
+        "row_difference": _row_differences(obs.pixels, run.base),
         "duplicated": _duplicate_counts(obs, duplicated)},
         "stereo_depth": stereo_depths(run.sequence.camera, disparity, run.base)})
+
+
+def _row_differences(pixels: np.ndarray, base: FilterOptions) -> dict:
+    """|vL - vR| of the observations against the filter's row guard (max_row_difference_px:
+    beyond it no landmark starts): how many are beyond, and the median."""
+    rows = np.abs(pixels[:, 1] - pixels[:, 3])
+    limit = float(base.max_row_difference_px)
+    return {"beyond_guard": int(np.count_nonzero(~(rows <= limit))), "guard_px": limit,
+            "median_px": float(np.median(rows)) if rows.size else None}
 
 
 #: Factors on the baseline tried when most depths fall outside the filter's depth guards
@@ -1535,6 +1546,7 @@ def _analyse_tracker_artifacts(run: _Check) -> Analysis:
                 + ("the filters handle them by default (repeated_observations: auto); nothing to do"
                    if rep_share > 0 else "nothing to do")),
         _disparity_finding(o, run.opts),
+        _stereo_rows_finding(o, run.opts),
         stereo_depth_finding(run.est["stereo_depth"], run.opts),
         _duplicate_finding(o["duplicated"])])
 
@@ -1556,6 +1568,22 @@ def _disparity_finding(o: dict, opts: CheckOptions) -> Finding:
         text += "; is the stereo pair rectified, and are the tracks matched between the images?"
     severity = "ERROR" if share > opts.disparity_error_share else "WARN"
     return Finding("disparity", severity, text + "; fix the features")
+
+
+def _stereo_rows_finding(o: dict, opts: CheckOptions) -> Finding:
+    """Rows that disagree (|vL - vR| beyond the filter's row guard): a rectified pair sees a
+    point on the same row in both images; most of them beyond it, and no landmark starts."""
+    n, r = o["total"], o["row_difference"]
+    share = r["beyond_guard"] / n if n else 0.0
+    text = (f"{r['beyond_guard']} observations ({100 * share:.1f} %) have |vL - vR| above the filter's "
+            f"{r['guard_px']:g} px (max_row_difference_px)")
+    if share <= opts.disparity_warn_share:
+        return Finding("stereo-rows", "OK", text + ("; the filters do not start landmarks from them; nothing to do"
+                                                    if r["beyond_guard"] else "; nothing to do"))
+    text += (f" (median {r['median_px']:.3g} px): a rectified stereo pair sees a point on the same row in both "
+             "images, and the filters start no landmark from these; is the pair rectified, and are the columns "
+             "uL, vL, uR, vR in that order?")
+    return Finding("stereo-rows", "ERROR" if share > opts.disparity_error_share else "WARN", text)
 
 
 def stereo_depth_finding(z: dict, opts: CheckOptions) -> Finding:

@@ -334,7 +334,7 @@ def run_warnings(result: "RunResult") -> list[str]:
     s = result.stats
     visual = result.mode in _VISUAL_MODES
     refused = (f"{s.observations_gated} gated, {s.observations_not_initialized} not initialized "
-               f"(disparity or depth guards), {s.observations_repeated} repeated")
+               f"(disparity, depth or row guards), {s.observations_repeated} repeated")
     what = "the map is empty" if result.mode == "mapping" else "the trajectory is dead reckoning and the map is empty"
     if visual and s.observations_used == 0 and s.frames_processed > 0:
         out.append(f"no observation was used in {s.frames_processed} frames (of {s.observations_total}: {refused}); "
