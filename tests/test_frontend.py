@@ -284,6 +284,24 @@ def test_tracker_options_from_file_and_errors(tmp_path):
         TrackerOptions(stereo_window_px=20)
 
 
+def test_tracker_options_beyond_any_image_are_refused_and_a_patch_too_big_matches_nothing(tmp_path):
+    """Values far beyond an image (grid_cols 1e9 asked numpy for 30 GB, min_distance_px
+    1e300 crashed OpenCV's corner detector) are ConfigErrors naming the field; a stereo
+    patch larger than the (downscaled) image gives no match and the few-tracks warning,
+    not an IndexError."""
+    from vislam.tools.frontend_io import track_source
+
+    for field, value, words in (("grid_cols", 10 ** 9, "grid_cols must be at most 200"),
+                                ("klt_levels", 10 ** 9, "klt_levels must be at most 8"),
+                                ("min_distance_px", 1e300, "min_distance_px must be at most 100000")):
+        with pytest.raises(ConfigError, match=words):
+            TrackerOptions(**{field: value})
+    source = open_stereo_source(_plain_folder(tmp_path / "f"))  # 320 x 200 px
+    for options in (TrackerOptions(stereo_window_px=201), TrackerOptions(stereo_search_level=8)):
+        _, stats = track_source(source, options)
+        assert stats["tracks"] == 0 and "only 0.0 tracked landmarks" in stats["warnings"][0]
+
+
 #: A complete EuRoC camera sensor.yaml (cam0 of V1_01).
 _EUROC_SENSOR = """T_BS:
   cols: 4

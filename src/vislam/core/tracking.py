@@ -81,6 +81,19 @@ def require_cv2():
     return cv2
 
 
+#: Upper bounds of TrackerOptions' integers: far beyond any image or sensible search, and
+#: below what OpenCV and numpy can allocate or loop over (grid_cols 1e9 asked for 30 GB,
+#: klt_levels 1e9 was OpenCV's bad_alloc, min_expected_frames 1e9 a loop without end).
+_TRACKER_INT_MAX = {"grid_cols": 200, "grid_rows": 200, "block_size_px": 99, "klt_window_px": 201,
+                    "stereo_window_px": 201, "refine_window_px": 201, "affine_radius_px": 50, "klt_levels": 8,
+                    "stereo_levels": 8, "stereo_tracked_levels": 8, "stereo_search_level": 8,
+                    "min_expected_frames": 10_000, "detect_retry_frames": 10_000, "border_px": 10_000}
+_TRACKER_INT_MAX_DEFAULT = 1_000_000
+#: Upper bound of TrackerOptions' numbers (pixels, factors, σ): min_distance_px 1e300
+#: crashed OpenCV's corner detector.
+_TRACKER_FLOAT_MAX = 1e5
+
+
 @dataclass(frozen=True)
 class TrackerOptions:
     """Options of :class:`StereoTracker` (units in the names; defaults documented inline)."""
@@ -202,10 +215,15 @@ class TrackerOptions:
                 if value < (0 if f.name in ("border_px", "ransac_iterations", "refine_window_px", "affine_radius_px", "stereo_tracked_levels", "detect_retry_frames", "stereo_search_level",
                                              "min_expected_frames") else 1):
                     raise ConfigError(f"{f.name} must be >= 1, got {value!r}")
+                most = _TRACKER_INT_MAX.get(f.name, _TRACKER_INT_MAX_DEFAULT)
+                if value > most:
+                    raise ConfigError(f"{f.name} must be at most {most}, got {value!r}")
             else:
                 if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
                         or not math.isfinite(value) or value < 0:
                     raise ConfigError(f"{f.name} must be a finite number >= 0, got {value!r}")
+                if value > _TRACKER_FLOAT_MAX:
+                    raise ConfigError(f"{f.name} must be at most {_TRACKER_FLOAT_MAX:g}, got {value!r}")
                 object.__setattr__(self, f.name, float(value))
         for name in ("klt_window_px", "stereo_window_px"):
             if getattr(self, name) % 2 == 0 or getattr(self, name) < 3:
@@ -433,6 +451,8 @@ class StereoTracker:
         s = float(2 ** o.stereo_search_level)
         h, w = L.shape
         r = max(2, (o.stereo_window_px >> o.stereo_search_level) // 2)
+        if h <= 2 * r or w <= 2 * r:  # the patch does not fit the image on that level: no match (a warning follows)
+            return np.zeros((n, 4)), np.zeros(n, bool)
         m = (2 * r + 1) ** 2
         d_lo, d_hi = int(math.floor(o.min_disparity_px / s)), int(math.ceil(o.max_disparity_px / s))
         u, v = (np.round(left / s).astype(int)).T
