@@ -99,6 +99,9 @@ def test_precedence_defaults_file_flags(tmp_path):
         ("huge_velocity.yaml", "velocity_noise_mps: [0.1, 1e300, 0.1]\n", ["velocity_noise_mps", "1e+06"]),
         ("huge_bias.toml", "imu_bias_sigma_mps = 1e300\n", ["imu_bias_sigma_mps", "1e+06"]),
         ("huge_prior.yaml", "initial_position_std_m: 1e200\n", ["initial_position_std_m", "1e+06"]),
+        ("huge_scale.yaml", "velocity_scale: 1e300\n", ["velocity_scale", "(0, 1000]"]),
+        ("huge_time.yaml", "timestamp_scale: 1e300\n", ["timestamp_scale", "[1e-12, 1e+06]"]),
+        ("huge_lm_prior.toml", "smoother_landmark_prior_m = 1e300\n", ["smoother_landmark_prior_m", "1e+06"]),
         ("syntax.yaml", "velocity_noise_mps: [0.5\n", ["invalid YAML"]),
         ("syntax.toml", "velocity_noise_mps = \n", ["invalid TOML"]),
         # scalars PyYAML resolves but its constructors cannot convert (were tracebacks)

@@ -345,9 +345,9 @@ class DataCorrections(_Group):
         (0.0, 0.0, 0.0), "velocity bias subtracted from every linear-velocity sample (IMU x, y, z)", unit="m/s",
         kind="vector3")
     velocity_scale: float = option(1.0, "factor on every linear-velocity sample, before the bias (a recording in "
-                                   "km/h needs 1/3.6)", **POSITIVE)
+                                   "km/h needs 1/3.6)", range=(0, 1e3), open=(True, False))
     timestamp_scale: float = option(1.0, "factor that turns the recording's timestamps into seconds (0.001 for "
-                                    "milliseconds)", **POSITIVE)
+                                    "milliseconds)", range=(1e-12, 1e6))
     imu_camera_rotation_correction_deg: tuple[float, float, float] = option(
         (0.0, 0.0, 0.0), "rotation vector φ in the camera frame: cam_T_imu's rotation becomes exp(φ) R, its "
         "translation is kept", unit="deg", kind="vector3")
@@ -378,7 +378,7 @@ class SmootherOptions(_Group):
     relinearize_threshold: float = option(0.01, "iSAM2 relinearization threshold (norm of a variable's tangent "
                                           "update)", **NON_NEGATIVE, flat="smoother_relinearize_threshold")
     landmark_prior_m: float = option(30.0, "1σ of the weak position prior on each new landmark, around its "
-                                     "triangulation", unit="m", **POSITIVE,
+                                     "triangulation", unit="m", range=(0, MAX_STD), open=(True, False),
                                      flat="smoother_landmark_prior_m")
     outlier_sigma: float = option(4.0, "an observation whose whitened error exceeds this after its frame's update "
                                   "is removed, counted as gated (0: no check)", unit="σ", **NON_NEGATIVE,
