@@ -155,7 +155,10 @@ def check_value(name: str, value, meta: Mapping[str, Any]):
     if kind == "per_axis":
         return _per_axis(name, value)
     if kind == "vector3":
-        return _three_numbers(name, value)
+        out = _three_numbers(name, value)
+        if meta["range"] is not None and not all(_in_range(x, meta) for x in out):
+            raise ConfigError(f"{name} must be three numbers {_range_text(meta)}, got {value!r}")
+        return out
     if kind == "rigid":
         return _rigid(name, value)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -340,17 +343,17 @@ class DataCorrections(_Group):
     TITLE: ClassVar[str] = "data corrections"
     gyro_bias_radps: tuple[float, float, float] = option(
         (0.0, 0.0, 0.0), "gyro bias subtracted from every angular-velocity sample (IMU x, y, z)", unit="rad/s",
-        kind="vector3")
+        kind="vector3", range=(-MAX_STD, MAX_STD))
     velocity_bias_mps: tuple[float, float, float] = option(
         (0.0, 0.0, 0.0), "velocity bias subtracted from every linear-velocity sample (IMU x, y, z)", unit="m/s",
-        kind="vector3")
+        kind="vector3", range=(-MAX_STD, MAX_STD))
     velocity_scale: float = option(1.0, "factor on every linear-velocity sample, before the bias (a recording in "
                                    "km/h needs 1/3.6)", range=(0, 1e3), open=(True, False))
     timestamp_scale: float = option(1.0, "factor that turns the recording's timestamps into seconds (0.001 for "
                                     "milliseconds)", range=(1e-12, 1e6))
     imu_camera_rotation_correction_deg: tuple[float, float, float] = option(
         (0.0, 0.0, 0.0), "rotation vector φ in the camera frame: cam_T_imu's rotation becomes exp(φ) R, its "
-        "translation is kept", unit="deg", kind="vector3")
+        "translation is kept", unit="deg", kind="vector3", range=(-360.0, 360.0))
     cam_T_imu: tuple | None = option(None, "4x4 rigid transform (rows) replacing the recording's cam_T_imu, or "
                                      "null to keep it (the rotation correction applies on top)", kind="rigid")
     velocity_association: str = option("next", "which velocity sample describes the interval k -> k+1: next "
