@@ -103,6 +103,8 @@ def test_precedence_defaults_file_flags(tmp_path):
         ("huge_time.yaml", "timestamp_scale: 1e300\n", ["timestamp_scale", "[1e-12, 1e+06]"]),
         ("huge_lm_prior.toml", "smoother_landmark_prior_m = 1e300\n", ["smoother_landmark_prior_m", "1e+06"]),
         ("huge_gyro_bias.yaml", "gyro_bias_radps: [1e300, 0, 0]\n", ["gyro_bias_radps", "[-1e+06, 1e+06]"]),
+        ("huge_lever_arm.yaml", "cam_T_imu: [[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n",
+         ["cam_T_imu", "±1000 m"]),
         ("huge_rotation.yaml", "imu_camera_rotation_correction_deg: [1e300, 0, 0]\n",
          ["imu_camera_rotation_correction_deg", "[-360, 360]"]),
         ("syntax.yaml", "velocity_noise_mps: [0.5\n", ["invalid YAML"]),

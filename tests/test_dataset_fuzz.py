@@ -188,6 +188,18 @@ def test_special_values_in_any_key(workdir, key, value, where):
         assert f"'{key}'" in str(outcome)
 
 
+@pytest.mark.parametrize("translation", [1e300, -1e4])
+def test_a_lever_arm_beyond_a_vehicle_is_refused(workdir, translation):
+    """cam_T_imu with a translation of 1e300 m (finite, rigid) overflowed every projection
+    to a non-finite state with numpy warnings; any beyond ±1 km is refused, naming the key."""
+    arrays = valid_arrays()
+    arrays["cam_T_imu"] = arrays["cam_T_imu"].copy()
+    arrays["cam_T_imu"][1, 3] = translation
+    outcome = load_outcome(write_arrays(workdir, arrays))
+    assert isinstance(outcome, DatasetError)
+    assert "'cam_T_imu'" in str(outcome) and "lever arm within ±1000 m" in str(outcome)
+
+
 @FUZZ
 @given(key=st.sampled_from(KEYS), axis=st.integers(0, 2))
 def test_empty_arrays(workdir, key, axis):

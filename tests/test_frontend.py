@@ -328,6 +328,10 @@ def _bad_folders(tmp_path):
     p = _plain_folder(tmp_path / "badcal")
     (p / "calibration.yaml").write_text("K: [[300, 0, 160], [0, 300, 100]]\nbaseline: 0.5\n")
     cases["malformed calibration"] = (p, "calibration.yaml: key 'K'")
+    p = _plain_folder(tmp_path / "lever")
+    cal = p / "calibration.yaml"
+    cal.write_text(cal.read_text().replace("[[0, -1, 0, 0]", "[[0, -1, 0, 1e300]"))
+    cases["lever arm of 1e300 m"] = (p, "calibration.yaml: the IMU-camera translation is [1e+300")
     p = _plain_folder(tmp_path / "badimg")
     (p / "right" / "000003.png").write_bytes(b"not a png")
     cases["unreadable image"] = (p, "000003.png: cannot be read as an image")

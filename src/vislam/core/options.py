@@ -195,6 +195,9 @@ PROBABILITY = {"range": (0, 1), "open": (True, True)}
 #: products of the covariances. The smallest 1σ of a pixel noise: its square must keep V
 #: positive-definite (1e-300 px underflows to V = 0).
 MAX_STD = 1e6
+#: Largest |coordinate| (m) of cam_T_imu's translation: the IMU and the camera sit on one
+#: vehicle; 1e300 m overflowed every projection to a non-finite state.
+MAX_LEVER_ARM_M = 1e3
 MIN_PIXEL_STD = 1e-6
 #: ``**STD``: a 1σ >= 0 and at most MAX_STD; ``**PIXEL_STD``: in [MIN_PIXEL_STD, MAX_STD].
 STD = {"range": (0, MAX_STD)}
@@ -743,6 +746,9 @@ def _rigid(name: str, value):
             or not np.allclose(a[3], [0.0, 0.0, 0.0, 1.0])):
         raise ConfigError(f"{name} must be a rigid transform: a rotation block (orthonormal, det +1) and last "
                           "row 0 0 0 1")
+    if np.abs(a[:3, 3]).max() > MAX_LEVER_ARM_M:
+        raise ConfigError(f"{name}'s translation must be within ±{MAX_LEVER_ARM_M:g} m (an IMU-camera lever arm), "
+                          f"got {a[:3, 3].tolist()}")
     return tuple(tuple(float(x) for x in row) for row in a)
 
 

@@ -50,6 +50,7 @@ import numpy as np
 
 from vislam.core.camera import StereoCamera
 from vislam.core.lie import is_rigid_transform, se3_inverse
+from vislam.core.options import MAX_LEVER_ARM_M
 from vislam.core.sequence import MISSING_PIXEL, Sequence, StereoObservations
 from vislam.errors import DatasetError
 from vislam.text import printable
@@ -492,6 +493,9 @@ def _read_transform(reader: _NpzReader, key: str) -> np.ndarray:
             f"is not a rigid transform (max |RᵀR - I| = {orth:.3g}, det R = {det:.6g}, last row "
             f"{T[3].tolist()}); expected a rotation block and last row [0, 0, 0, 1] within {_RIGID_TOL:g}",
         )
+    if np.abs(T[:3, 3]).max() > MAX_LEVER_ARM_M:
+        raise reader.error(key, f"has translation {T[:3, 3].tolist()} (m); expected an IMU-camera lever arm within "
+                                f"±{MAX_LEVER_ARM_M:g} m")
     return T
 
 

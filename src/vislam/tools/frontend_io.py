@@ -66,6 +66,7 @@ import yaml
 
 from vislam.core.camera import StereoCamera
 from vislam.core.lie import is_rigid_transform, se3_inverse
+from vislam.core.options import MAX_LEVER_ARM_M
 from vislam.core.sequence import Sequence
 from vislam.errors import DatasetError
 from vislam.tools.config import YAML_VALUE_ERRORS
@@ -655,10 +656,18 @@ def open_stereo_source(path, pair: str = "grey", velocities=None) -> StereoSourc
     if layout == "kitti-raw":
         if velocities is not None:
             raise DatasetError(f"{velocities}: --velocities is for EuRoC folders; a KITTI drive has its OXTS packets")
-        return _open_kitti(root, pair)
-    if layout == "euroc":
-        return _open_euroc(where, velocities)
-    return _open_folder(root, velocities)
+        source = _open_kitti(root, pair)
+    elif layout == "euroc":
+        source = _open_euroc(where, velocities)
+    else:
+        source = _open_folder(root, velocities)
+    t = np.asarray(source.cam_T_imu)[:3, 3]
+    if np.abs(t).max() > MAX_LEVER_ARM_M:  # 1e300 m overflowed every projection
+        calib = ", ".join(str(p) for p in source.inputs if Path(p).suffix in (".txt", ".yaml", ".yml")
+                          and "timestamps" not in Path(p).name)
+        raise DatasetError(f"{calib or root}: the IMU-camera translation is {t.tolist()} m; expected a lever arm "
+                           f"within ±{MAX_LEVER_ARM_M:g} m")
+    return source
 
 
 # ----------------------------------------------------------------------------- tracking
