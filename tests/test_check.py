@@ -587,6 +587,14 @@ def test_two_ids_on_one_point_are_found_counted_and_named(clean_check):
     assert finding.severity == "WARN" and f"frame {first}" in finding.message and "count twice" in finding.message
 
 
+def _with_pixels(seq, pixels):
+    """``seq`` with the same observations at other pixels (n, 4)."""
+    from vislam.core.sequence import StereoObservations
+
+    obs = seq.observations
+    return seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels, obs.n_landmarks))
+
+
 def test_exchanged_left_and_right_pixels_are_an_error_that_says_so(clean_check):
     """Non-positive disparities: none on the clean drive (OK); a third of the
     observations with their left and right pixels exchanged, a WARN; all of them, an
@@ -595,12 +603,11 @@ def test_exchanged_left_and_right_pixels_are_an_error_that_says_so(clean_check):
     assert _severity(result, "disparity") == "OK"
     seq = drive.sequence
     obs = seq.observations
-    from vislam.core.sequence import StereoObservations
 
     def exchanged(mask):
         pixels = obs.pixels.copy()
         pixels[mask] = pixels[mask][:, [2, 3, 0, 1]]
-        return seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels, obs.n_landmarks))
+        return _with_pixels(seq, pixels)
 
     third = np.random.default_rng(0).random(obs.n_observations) < 0.33
     some = check_sequence(exchanged(third), FAST).finding("disparity")
@@ -650,12 +657,7 @@ def test_rows_that_disagree_are_an_error(clean_check):
     drive, result = clean_check
     assert _severity(result, "stereo-rows") == "OK"
     seq = drive.sequence
-    obs = seq.observations
-    from vislam.core.sequence import StereoObservations
-
-    pixels = obs.pixels.copy()
+    pixels = seq.observations.pixels.copy()
     pixels[:, 3] = pixels[:, 1] + 20.0
-    shifted = seq.replace(observations=StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels,
-                                                          obs.n_landmarks))
-    finding = check_sequence(shifted, FAST).finding("stereo-rows")
+    finding = check_sequence(_with_pixels(seq, pixels), FAST).finding("stereo-rows")
     assert finding.severity == "ERROR" and "100.0 %" in finding.message and "median 20 px" in finding.message

@@ -195,10 +195,10 @@ PROBABILITY = {"range": (0, 1), "open": (True, True)}
 #: products of the covariances. The smallest 1σ of a pixel noise: its square must keep V
 #: positive-definite (1e-300 px underflows to V = 0).
 MAX_STD = 1e6
+MIN_PIXEL_STD = 1e-6
 #: Largest |coordinate| (m) of cam_T_imu's translation: the IMU and the camera sit on one
 #: vehicle; 1e300 m overflowed every projection to a non-finite state.
 MAX_LEVER_ARM_M = 1e3
-MIN_PIXEL_STD = 1e-6
 #: ``**STD``: a 1σ >= 0 and at most MAX_STD; ``**PIXEL_STD``: in [MIN_PIXEL_STD, MAX_STD].
 STD = {"range": (0, MAX_STD)}
 PIXEL_STD = {"range": (MIN_PIXEL_STD, MAX_STD)}
