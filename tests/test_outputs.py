@@ -187,6 +187,18 @@ def test_summary_is_consistent_with_the_files(tmp_path, drive, results, mode):
         assert summary["landmarks_in_map"] == 0
 
 
+def test_without_the_figure_every_other_output_is_written_and_the_summary_says_so(tmp_path, drive, results):
+    result = results["slam"]
+    seq = drive.sequence
+    with OutputStage(tmp_path) as stage:
+        summary = write_run_outputs(stage, result, dataset=_dataset(seq), duration_s=seq.duration_s,
+                                    start_time=time.time() - 1.0, figure=False)
+    assert {p.name for p in tmp_path.iterdir()} == ALL_FILES - {FIGURE}
+    assert FIGURE not in summary["outputs"] and set(summary["outputs"]) == ALL_FILES - {FIGURE}
+    assert summary["landmarks_outside_figure"] is None
+    assert json.loads((tmp_path / SUMMARY).read_text()) == summary
+
+
 def test_json_safe_replaces_non_finite_numbers():
     data = {"a": float("nan"), "b": [np.float32(np.inf), np.int64(3), np.bool_(True)], "c": np.array([1.0, -np.inf])}
     assert json_safe(data) == {"a": None, "b": [None, 3, True], "c": [1.0, None]}

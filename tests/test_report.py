@@ -99,6 +99,8 @@ def test_report_is_written_quietly_with_every_figure(report):
         assert not rel.startswith("/")
         path = out / rel
         assert path.is_file() and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", rel
+    # only the figures the report shows are drawn: no run folder holds another PNG
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*.png")) == sorted(figures)
     html = (out / "report.html").read_text()
     assert html.startswith("<!DOCTYPE html>")
     assert html.count('src="data:image/png;base64,') == len(figures)  # self-contained

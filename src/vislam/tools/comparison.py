@@ -30,7 +30,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Collection, Mapping
 
 import numpy as np
 
@@ -43,7 +43,7 @@ from vislam.core.suggest import did_you_mean
 from vislam.tools.evaluation import EvaluationResult, associate, evaluate_associated, load_ground_truth, \
     plot_error_over_distance, write_metrics_json
 from vislam.tools.jsonio import write_json
-from vislam.tools.outputs import OutputStage, display_name, write_run_outputs
+from vislam.tools.outputs import FIGURE, OutputStage, display_name, write_run_outputs
 from vislam.tools.trajectory_io import DEFAULT_MAX_DIFF_S, TrajectoryFile
 
 __all__ = [
@@ -207,21 +207,25 @@ _FRAME_INFO_KEYS = {"frame": "ground_truth_frame", "frame_requested": "ground_tr
                     "cam_T_imu_source": "cam_T_imu_source"}
 
 
-def stage_evaluation(directory, evaluation: EvaluationResult, title: str, plot=None, **extra) -> dict[str, Any]:
+def stage_evaluation(directory, evaluation: EvaluationResult, title: str, plot=None, figure: bool = True,
+                     **extra) -> dict[str, Any]:
     """Write ``metrics.json`` and ``error_over_distance.png`` into ``directory`` (a staging
     directory) and return :func:`evaluation_summary` with the file names. The frame of
     the ground truth (``extra["ground_truth"]``, see
     :func:`vislam.cli.run.ground_truth_from_args`) is recorded in metrics.json too.
     ``plot`` draws the figure (default :func:`~vislam.tools.evaluation.plot_error_over_distance`;
-    ``vislam run`` passes a :class:`~vislam.tools.figure_process.FigureProcess`'s)."""
+    ``vislam run`` passes a :class:`~vislam.tools.figure_process.FigureProcess`'s);
+    ``figure=False`` writes metrics.json only (its summary's ``figure`` is then None)."""
     directory = Path(directory)
     gt_info = extra.get("ground_truth")
     if isinstance(gt_info, Mapping):
         frame_info = {name: gt_info[key] for key, name in _FRAME_INFO_KEYS.items() if key in gt_info}
         evaluation = replace(evaluation, info={**frame_info, **evaluation.info})  # the evaluation's own first
     write_metrics_json(evaluation, directory / METRICS_FILE)
-    (plot or plot_error_over_distance)(evaluation, directory / ERROR_FIGURE_FILE, title=title)
-    return evaluation_summary(evaluation, **extra, metrics_file=METRICS_FILE, figure=ERROR_FIGURE_FILE)
+    if figure:
+        (plot or plot_error_over_distance)(evaluation, directory / ERROR_FIGURE_FILE, title=title)
+    return evaluation_summary(evaluation, **extra, metrics_file=METRICS_FILE,
+                              figure=ERROR_FIGURE_FILE if figure else None)
 
 
 # ----------------------------------------------------------------------------- noise
@@ -576,11 +580,14 @@ def plot_comparison(comparison: Comparison, path) -> dict:
     return plot_comparison_map(path, layers, title, subtitle, ground_truth=comparison.ground_truth_poses())
 
 
-def write_comparison(directory, comparison: Comparison, start_time: float | None = None) -> dict[str, Any]:
+def write_comparison(directory, comparison: Comparison, start_time: float | None = None,
+                     run_figures: Collection[str] | None = None) -> dict[str, Any]:
     """Write one folder per method (``separate/``, ``slam/``, ``smoother/``, ``refine/``),
     ``comparison.png`` and ``comparison.json`` into ``directory`` — meant to be a staging directory (see :meth:`OutputStage.commit`);
-    the run folders are themselves written all-or-nothing. Returns comparison.json's
-    content."""
+    the run folders are themselves written all-or-nothing. ``run_figures``: the method
+    folders' figures to draw, as paths in ``directory`` (``"slam/trajectory.png"``,
+    ``"slam/error_over_distance.png"``); None (the default) draws all of them.
+    ``comparison.png`` is always drawn. Returns comparison.json's content."""
     directory = Path(directory)
     label = comparison.label
     noise_record = injected_noise_record(comparison.noise, comparison.noise_info)
@@ -601,11 +608,13 @@ def write_comparison(directory, comparison: Comparison, start_time: float | None
             if m.evaluation is not None:
                 extra["evaluation"] = stage_evaluation(
                     stage.staging, m.evaluation, f"{display_name(dataset)} — {m.label} vs ground truth",
-                    ground_truth=comparison.ground_truth_info)
+                    ground_truth=comparison.ground_truth_info,
+                    figure=run_figures is None or f"{key}/{ERROR_FIGURE_FILE}" in run_figures)
             summaries[key] = write_run_outputs(stage, m.result, dataset=dataset,
                                                duration_s=comparison.sequence.duration_s, start_time=start_time,
                                                extra=extra, ground_truth=None if m.evaluation is None
-                                               else m.evaluation.gt_world_T_imu)
+                                               else m.evaluation.gt_world_T_imu,
+                                               figure=run_figures is None or f"{key}/{FIGURE}" in run_figures)
     view = plot_comparison(comparison, directory / COMPARISON_FIGURE)
     content = comparison.to_dict()
     content["figure"] = COMPARISON_FIGURE

@@ -647,7 +647,10 @@ def _figure_subtitle(result: RunResult, extra: str | None = None) -> str:
 
 
 def _write_common(stage: OutputStage, result: RunResult, dataset_name: str, curves, subtitle_extra: str | None,
-                  ply_comments: Iterable[str], plot=None) -> dict:
+                  ply_comments: Iterable[str], plot=None, figure: bool = True) -> dict | None:
+    """Write the trajectories and the map into ``stage``, and the figure unless ``figure``
+    is False; returns the figure's view (:func:`~vislam.tools.plotting.plot_trajectory_map`)
+    or None without it."""
     if plot is None:
         from vislam.tools.plotting import plot_trajectory_map as plot
 
@@ -656,6 +659,8 @@ def _write_common(stage: OutputStage, result: RunResult, dataset_name: str, curv
     if result.landmarks is not None:
         write_npz(stage.path(LANDMARKS_NPZ), landmark_arrays(result.landmarks))
         write_landmarks_ply(stage.path(LANDMARKS_PLY), result.landmarks, comments=ply_comments)
+    if not figure:
+        return None
     title = f"{dataset_name} — {method_title(result)}"
     if result.partial:
         title += " (partial)"
@@ -669,14 +674,16 @@ _COMMIT_ORDER = (TRAJECTORY_TUM, TRAJECTORY_KITTI, ONLINE_TUM, SMOOTHER_TUM, LAN
 
 def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping[str, Any], duration_s: float,
                       start_time: float | None, extra: Mapping[str, Any] | None = None,
-                      ground_truth: np.ndarray | None = None, plot=None) -> dict[str, Any]:
+                      ground_truth: np.ndarray | None = None, plot=None, figure: bool = True) -> dict[str, Any]:
     """Write the outputs of ``vislam run`` for ``result`` into ``stage`` and commit them.
 
     ``dataset`` (``name`` and ``path`` at least) goes into summary.json and the figure's
     title. ``ground_truth`` ((n, 4, 4) world_T_imu, e.g. the evaluation's) is drawn in
     the figure. ``plot`` draws the figure (default
     :func:`vislam.tools.plotting.plot_trajectory_map`; the CLI passes a
-    :class:`~vislam.tools.figure_process.FigureProcess`'s). Returns the summary written.
+    :class:`~vislam.tools.figure_process.FigureProcess`'s); ``figure=False`` writes every
+    other output but no figure (``vislam report`` draws only the figures it shows).
+    Returns the summary written.
     """
     from vislam.tools.plotting import TrajectoryCurve
 
@@ -700,8 +707,8 @@ def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping
         curves.insert(0, TrajectoryCurve(np.asarray(ground_truth), "ground truth", color="0.25", linewidth=3.2,
                                          zorder=2, mark_ends=False))
     view = _write_common(stage, result, name, curves, None,
-                         [f"vislam landmarks of {name} ({result.mode})"], plot)
-    extra = {**(extra or {}), "landmarks_outside_figure": view["landmarks_outside_view"]}
+                         [f"vislam landmarks of {name} ({result.mode})"], plot, figure)
+    extra = {**(extra or {}), "landmarks_outside_figure": None if view is None else view["landmarks_outside_view"]}
     summary = build_summary(result, dataset=dataset, duration_s=duration_s, start_time=start_time,
                             outputs=stage.staged() + [SUMMARY], extra=extra)
     write_json(stage.path(SUMMARY), summary)

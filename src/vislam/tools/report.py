@@ -21,6 +21,8 @@ nothing, into the output directory:
   with neither, SLAM with default options, without gating, with the robust preset and
   with the landmark motion model (the report's proposed fix), graded against the truth;
 * ``figures/`` — the report-level figures (noise ATE bars, moving-landmark overviews);
+  the run folders hold only the figures the report shows (every other output of each run
+  is there: trajectories, map, metrics.json, summary.json);
 * ``report.md`` (figures by relative path, tables in Markdown) and ``report.html`` (the
   same content, self-contained: inline CSS, figures embedded as data URIs).
 
@@ -526,13 +528,25 @@ def _ate_text(comparison: Comparison) -> str:
     return "ATE " + ", ".join(f"{METHOD_SHORT[k]} {_n(m.ate_m, '.2f')} m" for k, m in comparison.methods.items())
 
 
+def _trajectory_figure_methods(methods) -> list[str]:
+    """The methods whose trajectory figure section 1 shows: the refined run's figure shows
+    the smoother's trajectories too, so the smoother's own only without refinement."""
+    return [k for k in methods if not (k == "smoother" and "refine" in methods)]
+
+
+def _dataset_run_figures(methods, has_ground_truth: bool) -> list[str]:
+    """The run figures of a section-1 comparison that the report shows, as paths in its
+    folder (:func:`write_comparison`'s ``run_figures``): the only ones drawn."""
+    return [f"{k}/{FIGURE}" for k in _trajectory_figure_methods(methods)] + (
+        [f"{k}/{ERROR_FIGURE_FILE}" for k in methods] if has_ground_truth else [])
+
+
 def _method_figs(directory: str, comparison: Comparison, label: str) -> list[tuple[str, str]]:
     captions = {"separate": "IMU localization + landmark mapping (separately)", "slam": "visual-inertial SLAM",
                 "smoother": "sliding-window smoother (online and final estimates)",
                 "refine": "smoother with batch refinement (online, smoothed and refined)"}
-    # the refined run's figure shows the smoother's trajectories too: the smoother's own only without it
-    keys = [k for k in comparison.methods if not (k == "smoother" and "refine" in comparison.methods)]
-    return [(f"{directory}/{k}/{FIGURE}", f"{label}: {captions[k]}") for k in keys]
+    return [(f"{directory}/{k}/{FIGURE}", f"{label}: {captions[k]}")
+            for k in _trajectory_figure_methods(comparison.methods)]
 
 
 def _error_figs(directory: str, comparison: Comparison, label: str) -> list[tuple[str, str]]:
@@ -674,11 +688,12 @@ def _dataset_options(check: dict[str, Any] | None, told: NoiseLevel | None = Non
 
 def _comparison_task(sequence, ground_truth_path, ground_truth, ground_truth_info, dataset, check,
                      told: NoiseLevel | None, noise: NoiseSpec | None, directory: Path, start_time: float,
-                     methods=EKF_METHODS) -> Comparison:
+                     methods=EKF_METHODS, run_figures=None) -> Comparison:
     """One comparison of the report, run and written into ``directory`` (a task): the
     options from the dataset's ``check`` record (and ``told``), the check's data
     corrections applied (the camera ground truth converted with each run's calibration, the
-    corrected cam_T_imu: :func:`vislam.tools.comparison.evaluate_run`)."""
+    corrected cam_T_imu: :func:`vislam.tools.comparison.evaluate_run`). ``run_figures``:
+    the method folders' figures to draw (:func:`write_comparison`)."""
     options = _dataset_options(check, told)
     if options.has_data_corrections:
         from vislam.core.corrections import apply_corrections
@@ -686,7 +701,7 @@ def _comparison_task(sequence, ground_truth_path, ground_truth, ground_truth_inf
         sequence = apply_corrections(sequence, options)
     comparison = run_comparison(sequence, options, noise=noise, ground_truth=ground_truth,
                                 ground_truth_info=ground_truth_info, dataset=dataset, methods=methods, auto=check)
-    write_comparison(directory, comparison, start_time=start_time)
+    write_comparison(directory, comparison, start_time=start_time, run_figures=run_figures)
     return comparison
 
 
@@ -713,12 +728,16 @@ class _ReportBuilder:
 
     def _submit_comparison(self, d: DatasetInput, directory: str, told: NoiseLevel | None, noise: NoiseSpec | None,
                            priority: int = 0, methods=EKF_METHODS):
+        """Submit one comparison. Its method folders get only the figures the report
+        shows: section 1's (:func:`_dataset_run_figures`); none for the noise runs, which
+        the report shows by their comparison.png alone."""
         if d.check is None:
             d.check = self.engine.submit(_check_task, d.sequence, priority=20)
+        run_figures = _dataset_run_figures(methods, d.ground_truth is not None) if noise is None else ()
         return self.engine.submit(_comparison_task, d.sequence, d.ground_truth_path if d.ground_truth is not None
                                   else None, d.ground_truth, d.ground_truth_info(),
                                   dataset_record(d.sequence, d.path, d.label), d.check, told, noise,
-                                  self.root / directory, self.start_time, methods, priority=priority)
+                                  self.root / directory, self.start_time, methods, run_figures, priority=priority)
 
     @property
     def dataset_methods(self) -> tuple[str, ...]:
@@ -977,9 +996,10 @@ def _simulate_task(sim_options):
 
 
 def _moving_run_task(drive, scene: str, scene_label: str, sim_options, key: str, label: str, mode: str,
-                     options: FilterOptions, directory: Path, start_time: float):
+                     options: FilterOptions, directory: Path, start_time: float, figure: bool = True):
     """One run of the moving-landmark section on a simulated drive, graded against the
-    truth and written into ``directory`` (a task). Returns (result, evaluation)."""
+    truth and written into ``directory`` (a task), with its trajectory figure when
+    ``figure`` (the report shows it) and no error figure. Returns (result, evaluation)."""
     from vislam.core.estimators import run as run_estimator
 
     seq = drive.sequence
@@ -990,13 +1010,20 @@ def _moving_run_task(drive, scene: str, scene_label: str, sim_options, key: str,
     evaluation = evaluate_run(result, truth, seq)
     with OutputStage(directory) as stage:
         extra = {"evaluation": stage_evaluation(stage.staging, evaluation, f"{dataset['label']} — {label} vs truth",
-                                                ground_truth=truth_info),
+                                                ground_truth=truth_info, figure=False),
                  "variant": label}
         # short: the label is the figure's title (with the mode appended)
         short = f"Simulator, {'moving landmarks' if scene == 'moving' else 'static'}, {key.replace('-', ' ')}"
         write_run_outputs(stage, result, dataset={**dataset, "label": short},
-                          duration_s=seq.duration_s, start_time=start_time, extra=extra)
+                          duration_s=seq.duration_s, start_time=start_time, extra=extra, figure=figure)
     return result, evaluation
+
+
+def _moving_variant_figures() -> dict[str, str]:
+    """The run figures the moving-landmark section shows (the only ones its runs draw):
+    path -> caption, the SLAM variants on the scene with moving landmarks."""
+    return {f"{RUNS_DIR}/simulator-moving/{key}/{FIGURE}": f"Scene with moving landmarks: {label} (rejected "
+            "landmarks as red crosses)" for key, label, _, _ in MOVING_VARIANTS}
 
 
 def _submit_moving(engine, root: Path, settings: ReportSettings, start_time: float) -> dict[str, Any]:
@@ -1004,12 +1031,14 @@ def _submit_moving(engine, root: Path, settings: ReportSettings, start_time: flo
     ``{"simulator-<scene>": drive future, "<run directory>": (result, evaluation) future}``."""
     futures: dict[str, Any] = {}
     base = FilterOptions(**SIMULATION_NOISE)
+    shown = _moving_variant_figures()
     for scene, (scene_label, sim_options) in _moving_scenes(settings).items():
         drive = futures[f"simulator-{scene}"] = engine.submit(_simulate_task, sim_options, priority=10)
         for key, label, mode, options in _moving_runs(base):
             directory = f"{RUNS_DIR}/simulator-{scene}/{key}"
             futures[directory] = engine.submit(_moving_run_task, drive, scene, scene_label, sim_options, key, label,
-                                               mode, options, root / directory, start_time, priority=5)
+                                               mode, options, root / directory, start_time,
+                                               f"{directory}/{FIGURE}" in shown, priority=5)
     return futures
 
 
@@ -1042,8 +1071,7 @@ def _moving_landmarks(root: Path, settings: ReportSettings, start_time: float, s
     doc.table(["Scene", "Filter", "Frames", "Landmarks", "ATE (m)", "KITTI t (%)", "Filter time (s)", "Note",
                "Folder"], table, "llrrrrrll")
     doc.figures(_moving_figures(root / FIGURES_DIR, results, drives["moving"].world_T_imu, base, rows, step))
-    doc.figures([(f"{RUNS_DIR}/simulator-moving/{key}/{FIGURE}", f"Scene with moving landmarks: {label} (rejected "
-                  "landmarks as red crosses)") for key, label, _, _ in MOVING_VARIANTS])
+    doc.figures(list(_moving_variant_figures().items()))
     step("moving-landmark figures: the variants")
     return rows, doc.blocks
 
