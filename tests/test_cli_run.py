@@ -282,3 +282,12 @@ def test_total_time_counts_the_command_not_what_its_process_ran_before(sim, tmp_
     own = json.loads((own_out / "summary.json").read_text())
     assert after_exec["filter_seconds"] < after_exec["total_seconds"] < own["total_seconds"] + 3.0
     assert own["filter_seconds"] < own["total_seconds"]
+
+
+def test_the_real_time_factor_reads_as_faster_or_slower():
+    from vislam.cli.common import _times_real_time
+
+    assert _times_real_time(0.029) == "34x faster than real time"
+    assert _times_real_time(0.8) == "1.2x faster than real time"
+    assert _times_real_time(19.4) == "19x slower than real time"
+    assert _times_real_time(1.5) == "1.5x slower than real time"

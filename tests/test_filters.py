@@ -212,3 +212,41 @@ def test_online_pose_is_predicted_to_the_newest_frame():
         assert np.linalg.norm(f.world_T_imu[:3, 3] - sim.world_T_imu[frame.index, :3, 3]) < 0.5
     f.drain()
     assert f.last_frame_stats.frame == sim.sequence.n_frames - 1
+
+
+def test_a_full_state_lets_the_lowest_ids_in_bounds_its_size_and_says_so():
+    """``max_landmarks_in_state`` bounds the SLAM state: the landmarks beyond it wait (the
+    lowest ids enter first), are counted, and the run warns. A bound at the drive's peak
+    changes nothing."""
+    from vislam.core.results import run_warnings
+
+    drive = simulate_drive(SimulationOptions(seed=3, n_frames=120, **NOISY))
+    seq = drive.sequence
+    options = vislam.FilterOptions(**NOISY)
+    free = vislam.run(seq, "slam", options)
+    peak = free.stats.max_state_landmarks
+    assert peak > 12 and free.stats.observations_state_full == free.stats.frames_state_full == 0
+    assert not any("state was full" in w for w in run_warnings(free))
+    same = vislam.run(seq, "slam", options.replace(max_landmarks_in_state=peak))
+    np.testing.assert_array_equal(same.world_T_imu, free.world_T_imu)
+    assert same.stats.observations_state_full == 0
+
+    cap = peak // 3
+    f = vislam.SlamFilter(seq.calibration, options.replace(max_landmarks_in_state=cap))
+    first = next(iter(seq.frames()))
+    f.step(first)
+    assert first.n_observations > cap  # the first frame alone overfills the state
+    np.testing.assert_array_equal(f.live_landmark_ids, np.sort(first.landmark_ids)[:cap])
+    capped = vislam.run(seq, "slam", options.replace(max_landmarks_in_state=cap))
+    assert not capped.partial and capped.stats.max_state_landmarks == cap
+    assert capped.stats.observations_state_full > 0 and capped.stats.frames_state_full > 0
+    assert capped.stats.to_dict()["observations_state_full"] == capped.stats.observations_state_full
+    warning = [w for w in run_warnings(capped) if "state was full" in w]
+    assert len(warning) == 1 and f"max_landmarks_in_state {cap}" in warning[0]
+    assert f"{capped.stats.observations_state_full} observations" in warning[0]
+    # still SLAM: far from dead reckoning's drift under this IMU noise
+    truth = drive.world_T_imu[:, :3, 3]
+    dead = vislam.run(seq, "localization", options)
+    ate = {name: float(np.sqrt(np.mean(np.sum((r.world_T_imu[:, :3, 3] - truth) ** 2, axis=1))))
+           for name, r in (("capped", capped), ("dead", dead))}
+    assert ate["capped"] < 0.5 * ate["dead"], ate

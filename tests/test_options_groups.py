@@ -19,7 +19,7 @@ CHANGED = {
     "velocity_noise_mps": (0.4, 0.5, 0.6), "angular_noise_radps": 0.05, "pixel_noise_px": 1.5,
     "initial_position_std_m": 0.1, "initial_rotation_std_rad": 0.01, "min_disparity_px": 1.0, "max_depth_m": 60.0,
     "min_depth_m": 1.0, "max_row_difference_px": 2.0, "init_frames": 2, "probation_frames": 2,
-    "landmark_parametrization": "cartesian", "keep_all_landmarks": True, "landmark_motion": True,
+    "landmark_parametrization": "cartesian", "keep_all_landmarks": True, "max_landmarks_in_state": 400, "landmark_motion": True,
     "landmark_velocity_std_mps": 1.0, "landmark_acceleration_std_mps2": 0.5, "gating_probability": None,
     "max_consecutive_gated": 5, "drift_test_probability": 0.9, "ekf": "standard", "update_iterations": 2,
     "update_iteration_tolerance": 0.0, "repeated_observations": "split", "stalled_tracks": "keep",
@@ -39,7 +39,7 @@ CHANGED = {
 
 def test_every_flat_name_maps_to_exactly_one_nested_field():
     nested = [(g, f.name) for g, cls in OPTION_GROUPS.items() for f in dataclasses.fields(cls)]
-    assert len(nested) == len(set(nested)) == len(FLAT_FIELDS) == 53
+    assert len(nested) == len(set(nested)) == len(FLAT_FIELDS) == 54
     assert sorted(FLAT_FIELDS.values()) == sorted(nested)  # a bijection flat <-> (group, field)
     assert set(FilterOptions().to_dict()) == set(FLAT_FIELDS)
     assert set(CHANGED) == set(FLAT_FIELDS)

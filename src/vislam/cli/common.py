@@ -314,6 +314,14 @@ def make_progress(total: int, desc: str, quiet: bool):
     progress.phase = phase
     return progress, bar.close
 
+def _times_real_time(rtf: float) -> str:
+    """``"34x faster than real time"`` for a real-time factor (filter time / recording
+    duration) of 0.029, ``"19x slower than real time"`` for 19.4."""
+    factor = 1 / rtf if rtf < 1 else rtf
+    text = f"{factor:.0f}" if factor >= 10 else f"{factor:.1f}"
+    return f"{text}x {'faster' if rtf < 1 else 'slower'} than real time"
+
+
 def _seconds(x) -> str:
     return "n/a" if x is None else f"{x:.2f} s"
 
@@ -334,7 +342,7 @@ def format_summary(s: dict, out_dir) -> str:
         lines.append(f"observations:  {s['observations_used']} used, {s['observations_gated']} gated, "
                      f"{s['observations_repeated']} repeated")
     rtf = s.get("real_time_factor")
-    speed = f"real-time factor {rtf:.3g}, {1 / rtf:.0f}x faster than real time" if rtf else "real-time factor n/a"
+    speed = f"real-time factor {rtf:.3g}, {_times_real_time(rtf)}" if rtf else "real-time factor n/a"
     per_frame = ""
     if s.get("frame_ms_median") is not None:
         per_frame = f"; per frame median {s['frame_ms_median']:.2f} ms, p95 {s['frame_ms_p95']:.2f} ms"

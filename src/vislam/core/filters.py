@@ -802,6 +802,11 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         self.stats.observations_not_initialized += int((~good).sum())
         if good.any():
             g_ids, g_z = self._pending.admit(ids[good], z[good], t, self._state.imu_T_world, self._tau2_sum, self.stats)
+            room = max(self.options.max_landmarks_in_state - self._state.n_landmarks, 0)
+            if g_ids.size > room:  # the state is full: the lowest ids enter, the others wait
+                self.stats.observations_state_full += int(g_ids.size - room)
+                self.stats.frames_state_full += 1
+                g_ids, g_z = g_ids[:room], g_z[:room]
             if g_ids.size:
                 slam_initialize_landmarks(self._state, self._model, g_ids, g_z, self._V, N_pose, self._velocity_var)
                 self._tracks.started(g_ids, t)

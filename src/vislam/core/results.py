@@ -120,6 +120,10 @@ class RunStats:
     landmarks_rejected: int = 0
     landmarks_moving: int = 0
     max_state_landmarks: int = 0
+    #: Observations of new landmarks left out because the SLAM state was full
+    #: (``max_landmarks_in_state``), and the frames where that happened.
+    observations_state_full: int = 0
+    frames_state_full: int = 0
     #: Sum and count of the normalized innovations squared (4-D stereo) that passed the gate.
     nis_sum: float = 0.0
     nis_count: int = 0
@@ -151,6 +155,8 @@ class RunStats:
             "landmarks_rejected": self.landmarks_rejected,
             "landmarks_moving": self.landmarks_moving,
             "max_state_landmarks": self.max_state_landmarks,
+            "observations_state_full": self.observations_state_full,
+            "frames_state_full": self.frames_state_full,
             "nis_mean": self.nis_mean,
             "nis_count": self.nis_count,
             "filter_seconds": self.filter_seconds,
@@ -328,8 +334,8 @@ def _longest_without(used: np.ndarray, t: np.ndarray) -> tuple[float, int, int]:
 def run_warnings(result: "RunResult") -> list[str]:
     """Every warning of a run (one line each): :func:`model_fit_warnings` (SLAM) and
     those that say the estimator did not do its job — no observation ever used, a long
-    stretch without a visual update, most observations refused (mapping, smoother), a
-    time gap beyond its model (:data:`JOB_LIMITS`)."""
+    stretch without a visual update, most observations refused (mapping, smoother), new
+    landmarks left out of a full SLAM state, a time gap beyond its model (:data:`JOB_LIMITS`)."""
     out = model_fit_warnings(result)
     s = result.stats
     visual = result.mode in _VISUAL_MODES
@@ -365,6 +371,11 @@ def run_warnings(result: "RunResult") -> list[str]:
             if rejected / n > limit:
                 out.append(f"{rejected / n:.0%} of the landmarks were rejected ({rejected} of {n}; expected below "
                            f"{limit:.0%}); {hint}")
+    if s.observations_state_full:
+        out.append(f"the SLAM state was full (max_landmarks_in_state {result.options.max_landmarks_in_state}) in "
+                   f"{s.frames_state_full} of {s.frames_processed} frames: {s.observations_state_full} observations "
+                   f"of new landmarks waited and were not used; raise max_landmarks_in_state in an options file "
+                   f"(--config; a frame's update costs the cube of its landmarks) or give fewer features per frame")
     out.extend(_timestamp_warnings(result))
     out.extend(_gap_warnings(result))
     return out
