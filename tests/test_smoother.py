@@ -408,3 +408,21 @@ def test_gtsam_failures_read_as_the_smoothers_variables_on_one_line():
                     "151). Thrown when a linear system is ill-posed")
     assert "landmark 7" in _one_line(RuntimeError("near variable 7782220156096217095 (Symbol: l7)."))
     assert _one_line(ValueError()) == "ValueError"
+
+
+def test_a_full_window_lets_the_lowest_ids_in_and_bounds_its_size(noisy):
+    """``max_landmarks_in_state`` bounds the smoother's window as it bounds the EKF's
+    state: new landmarks beyond it wait, lowest id first, and are counted."""
+    sim, free = noisy
+    peak = free.stats.max_state_landmarks
+    assert free.stats.observations_state_full == 0 and peak > 100
+    cap = 50
+    capped = estimators.run(sim.sequence, "smoother", MODEL.replace(max_landmarks_in_state=cap))
+    assert not capped.partial and capped.stats.max_state_landmarks == cap
+    assert capped.stats.observations_state_full > 0 and capped.stats.frames_state_full > 0
+    first = next(iter(sim.sequence.frames()))
+    assert first.n_observations > cap  # the first frame's lowest ids start the map
+    assert set(np.sort(first.landmark_ids)[:cap]) <= set(capped.landmarks.ids)
+    dead = estimators.run(sim.sequence, "localization", MODEL)
+    # fewer landmarks, but still better than dead reckoning (0.13 m against 0.19 m; 0.03 m unbounded)
+    assert ate(capped.world_T_imu, sim.world_T_imu) < ate(dead.world_T_imu, sim.world_T_imu)

@@ -252,8 +252,8 @@ class LandmarkOptions(_Group):
     keep_all: bool = option(False, "keep every landmark in the SLAM state for the whole run (the report's "
                             "variant; by default a landmark is marginalized when its track ends)", kind="bool",
                             flat="keep_all_landmarks")
-    max_in_state: int = option(1000, "most landmarks in the SLAM EKF's state at once: a new landmark waits for "
-                               "room, lowest id first (a frame's update costs the cube of its landmarks: 1000 "
+    max_in_state: int = option(1000, "most landmarks in the SLAM EKF's state (and the smoother's window) at once: a "
+                               "new landmark waits for room, lowest id first (a frame's update costs the cube of its landmarks: 1000 "
                                "take seconds, 3000 a minute and gigabytes)", unit="landmarks", kind="integer",
                                range=(1, MAX_LANDMARKS_IN_STATE), flat="max_landmarks_in_state")
     motion: bool = option(False, "give every SLAM landmark a velocity with a constant-velocity prediction (the "

@@ -372,7 +372,8 @@ def run_warnings(result: "RunResult") -> list[str]:
                 out.append(f"{rejected / n:.0%} of the landmarks were rejected ({rejected} of {n}; expected below "
                            f"{limit:.0%}); {hint}")
     if s.observations_state_full:
-        out.append(f"the SLAM state was full (max_landmarks_in_state {result.options.max_landmarks_in_state}) in "
+        holder = "the smoother's window" if result.mode == "smoother" else "the SLAM state"
+        out.append(f"{holder} was full (max_landmarks_in_state {result.options.max_landmarks_in_state}) in "
                    f"{s.frames_state_full} of {s.frames_processed} frames: {s.observations_state_full} observations "
                    f"of new landmarks waited and were not used; raise max_landmarks_in_state in an options file "
                    f"(--config; a frame's update costs the cube of its landmarks) or give fewer features per frame")

@@ -599,6 +599,12 @@ class SmootherFilter(StepwiseFilter):
         new_z = np.array(new_z)
         good = initialization_guard(self.calibration.camera, new_z, self.options)
         self.stats.observations_not_initialized += int((~good).sum())
+        candidates = np.flatnonzero(good)  # in id order (ids_seen is sorted)
+        room = max(self.options.max_landmarks_in_state - len(self._landmarks), 0)
+        if candidates.size > room:  # the window is full: the lowest ids enter, the others wait
+            good[candidates[room:]] = False
+            self.stats.observations_state_full += int(candidates.size - room)
+            self.stats.frames_state_full += 1
         new_frame = np.array(new_frame)
         for k in np.unique(new_frame[good]):
             sel = np.flatnonzero(good & (new_frame == k))
