@@ -40,3 +40,19 @@ def drifting_estimate(rng, gt: np.ndarray, sigma_t: float = 0.03, sigma_r: float
     for k in range(len(rel)):
         est[k + 1] = est[k] @ rel[k] @ noise[k]
     return est
+
+
+def poison_state_at(monkeypatch, frame: int) -> None:
+    """Make the SLAM EKF's covariance non-finite in the prediction to ``frame``: a numerical
+    failure its health check must catch (bounded inputs no longer overflow the state: a
+    velocity of 1e300 did, before MAX_IMU_SAMPLE)."""
+    from vislam.core.filters import SlamFilter
+
+    predict = SlamFilter.predict
+
+    def poisoned(self, *args, **kwargs):
+        predict(self, *args, **kwargs)
+        if self.frame_index + 1 == frame:
+            self._state.cov[0, 0] = np.nan
+
+    monkeypatch.setattr(SlamFilter, "predict", poisoned)

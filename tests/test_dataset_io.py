@@ -369,6 +369,19 @@ def test_non_finite_values(tmp_path, key, value):
     assert_refused(write(tmp_path / "n.npz", dict(arrays, **{key: bad})), key)
 
 
+@pytest.mark.parametrize("key", ["linear_velocity", "rotational_velocity"])
+@pytest.mark.parametrize("value", [1e200, -2e9])
+def test_velocities_beyond_any_unit_are_refused(tmp_path, key, value):
+    """Finite, but beyond MAX_IMU_SAMPLE: a 1e200 sample overflowed the filters' squares
+    (a traceback in SLAM and localization)."""
+    arrays = valid_arrays()
+    bad = np.array(arrays[key], dtype=float)
+    bad[1, 4] = value
+    assert_refused(write(tmp_path / "far.npz", dict(arrays, **{key: bad})), key, "row 1, frame 4", "within ±1e+09")
+    bad[1, 4] = 1e9  # the bound itself loads
+    load_sequence(write(tmp_path / "edge.npz", dict(arrays, **{key: bad})))
+
+
 @pytest.mark.parametrize("value", [np.nan, np.inf])
 def test_non_finite_timestamps(tmp_path, value):
     arrays = valid_arrays()

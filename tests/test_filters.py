@@ -107,11 +107,11 @@ def test_bad_calls_raise_clear_errors(drive):
         f.predict(-0.1, np.zeros(3), np.zeros(3))
 
 
-def test_failure_stops_the_filter_and_batch_is_partial(drive):
-    seq = drive.sequence
-    lin = np.array(seq.linear_velocity_in_imu_mps)
-    lin[40] = 1e308  # overflows the pose: the health check must catch it
-    bad = seq.replace(linear_velocity_in_imu_mps=lin)
+def test_failure_stops_the_filter_and_batch_is_partial(drive, monkeypatch):
+    from conftest import poison_state_at
+
+    bad = drive.sequence
+    poison_state_at(monkeypatch, 40)  # a non-finite covariance: the health check must catch it
     r = vislam.run(bad, "slam", vislam.FilterOptions())
     assert r.partial and r.stats.frames_processed == 40 and "frame 40" in r.error
     f = vislam.SlamFilter(bad.calibration)

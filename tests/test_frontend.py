@@ -341,6 +341,10 @@ def _bad_folders(tmp_path):
     p = _plain_folder(tmp_path / "vcount")
     (p / "velocities.csv").write_text("t,vx,vy,vz,wx,wy,wz\n0,1,0,0,0,0,0\n0.1,1,0,0,0,0,0\n")
     cases["velocity rows disagree"] = (p, "velocities.csv: has 2 rows; expected one per image pair")
+    p = _plain_folder(tmp_path / "vfar")
+    csv = p / "velocities.csv"
+    csv.write_text(csv.read_text().replace(",1,0,0,0,0,0.01\n", ",1,0,0,1e200,0,0.01\n", 1))
+    cases["velocity of 1e200"] = (p, "velocities.csv: line 2 ('100.0,1,0,0,1e200,0,0.01') has a velocity beyond")
     # KITTI: left/right time stamps disagree
     date = _write_kitti_calib(tmp_path / "k" / "2011_09_30")
     drive = date / "2011_09_30_drive_0001_sync"

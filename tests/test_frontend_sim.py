@@ -4,6 +4,7 @@ the KITTI raw reader, the tracker against the true geometry, and `vislam run FOL
 from __future__ import annotations
 
 import json
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -112,3 +113,22 @@ def test_the_colour_pair_of_a_grey_drive_is_refused_by_its_missing_images(render
     _, _, folder = rendered
     with pytest.raises(DatasetError, match=r"image_02[/\\]data: missing; expected the colour pair's images"):
         open_stereo_source(folder, pair="colour")
+
+
+def test_an_oxts_packet_beyond_any_velocity_is_refused(rendered, tmp_path):
+    """A corrupt OXTS packet (a velocity of 1e200, finite) is refused naming the packet;
+    integrated, it overflowed the filters."""
+    import shutil
+
+    from vislam.errors import DatasetError
+
+    _, out, folder = rendered
+    copy = tmp_path / out.name
+    shutil.copytree(out, copy)
+    drive = copy / folder.name
+    packet = sorted((drive / "oxts" / "data").glob("*.txt"))[3]
+    values = packet.read_text().split()
+    values[20] = "1e200"  # wf
+    packet.write_text(" ".join(values) + "\n")
+    with pytest.raises(DatasetError, match=re.escape(str(packet)) + r": velocities \(vf vl vu, wf wl wu\) .*1e\+200"):
+        open_stereo_source(drive)

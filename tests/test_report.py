@@ -147,7 +147,7 @@ def test_report_metrics_row_for_the_dataset_with_ground_truth(report):
 def test_report_progress_lines_on_stderr(data_dir, tmp_path, capsys):
     out = tmp_path / "r"
     code = main(["report", "--data", str(data_dir), "--out", str(out), "--sim-frames", "0", "--noise-levels", "none",
-                 "--no-smoother"])
+                 "--no-smoother", "--sequential"])
     assert code == 0
     err = capsys.readouterr().err
     lines = err.strip().splitlines()

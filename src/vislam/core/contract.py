@@ -76,6 +76,7 @@ import numpy as np
 
 from vislam.core.lie import se3_inverse
 from vislam.core.results import LandmarkMap, RunStats
+from vislam.core.sequence import MAX_IMU_SAMPLE
 from vislam.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -298,7 +299,10 @@ class StepwiseFilter:
 
 def checked_dt(dt_s) -> float:
     """``predict``'s time step as a float: finite and >= 0 (s), else ConfigError."""
-    dt = float(dt_s)
+    try:
+        dt = float(dt_s)
+    except (TypeError, ValueError):
+        raise ConfigError(f"predict: dt_s must be a finite time step >= 0 (s), got {dt_s!r}") from None
     if not np.isfinite(dt) or dt < 0:
         raise ConfigError(f"predict: dt_s must be a finite time step >= 0 (s), got {dt_s!r}")
     return dt
@@ -311,7 +315,10 @@ def checked_observations(ids, pixels, trusted: bool = False) -> tuple[np.ndarray
             and pixels.dtype == np.float64:
         return ids, pixels
     ids = np.asarray(ids)
-    pixels = np.asarray(pixels, dtype=np.float64)
+    try:
+        pixels = np.asarray(pixels, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"update: pixels must be numbers, (n, 4) [uL, vL, uR, vR]; got {pixels!r:.80}") from None
     if ids.ndim != 1 or pixels.shape != (ids.shape[0], 4):
         raise ConfigError(f"update: expected landmark ids (n,) and pixels (n, 4), got {ids.shape} and {pixels.shape}")
     if ids.size and not np.issubdtype(ids.dtype, np.integer):
@@ -319,13 +326,32 @@ def checked_observations(ids, pixels, trusted: bool = False) -> tuple[np.ndarray
     ids = ids.astype(np.int64, copy=False)
     if ids.size > 1 and np.any(np.diff(ids) <= 0):
         raise ConfigError("update: landmark ids must be strictly increasing within a frame")
+    if not np.isfinite(pixels).all():
+        row = int(np.flatnonzero(~np.isfinite(pixels).all(axis=1))[0])
+        raise ConfigError(f"update: pixels must be finite; landmark {ids[row]} has {pixels[row].tolist()} "
+                          f"(leave an unobserved landmark out of the frame)")
     return ids, pixels
 
 
 def twist(linear_velocity, angular_velocity) -> np.ndarray:
-    """u = (v, ω), the report's twist order, from ``predict``'s two samples."""
+    """u = (v, ω), the report's twist order, from ``predict``'s two samples: 3 numbers
+    each, finite and within ±:data:`~vislam.core.sequence.MAX_IMU_SAMPLE`, else ConfigError."""
     if isinstance(linear_velocity, np.ndarray) and isinstance(angular_velocity, np.ndarray) \
             and linear_velocity.shape == angular_velocity.shape == (3,):
-        return np.concatenate([linear_velocity, angular_velocity]).astype(np.float64, copy=False)
-    return np.concatenate([np.asarray(linear_velocity, dtype=np.float64).reshape(3),
-                           np.asarray(angular_velocity, dtype=np.float64).reshape(3)])
+        u = np.concatenate([linear_velocity, angular_velocity]).astype(np.float64, copy=False)
+    else:
+        parts = []
+        for name, unit, value in (("linear_velocity", "m/s", linear_velocity),
+                                  ("angular_velocity", "rad/s", angular_velocity)):
+            try:
+                a = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ConfigError(f"predict: {name} must be 3 numbers ({unit}), got {value!r}") from None
+            if a.size != 3:
+                raise ConfigError(f"predict: {name} must be 3 numbers ({unit}), got shape {a.shape}")
+            parts.append(a.reshape(3))
+        u = np.concatenate(parts)
+    if not all(-MAX_IMU_SAMPLE <= x <= MAX_IMU_SAMPLE for x in u.tolist()):  # NaN fails too
+        raise ConfigError(f"predict: the IMU sample (v, ω) = {u.tolist()} must be finite and within "
+                          f"±{MAX_IMU_SAMPLE:g} (m/s, rad/s)")
+    return u

@@ -40,7 +40,7 @@ import numpy as np
 from vislam.core.lie import so3_exp
 from vislam.core.options import DATA_CORRECTION_FIELDS, FilterOptions
 from vislam.core.results import CalibrationUsed
-from vislam.core.sequence import Sequence
+from vislam.core.sequence import MAX_IMU_SAMPLE, Sequence
 from vislam.errors import ConfigError
 
 __all__ = ["apply_corrections", "correction_values", "shift_to_current_association", "resample_velocities",
@@ -105,6 +105,12 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
         u = u.copy()
         u[:, :3] *= options.velocity_scale
     u = u - np.concatenate([np.asarray(options.velocity_bias_mps), np.asarray(options.gyro_bias_radps)])
+    far = np.abs(u) > MAX_IMU_SAMPLE
+    if far.any():
+        k, i = (int(x) for x in np.argwhere(far)[0])
+        raise ConfigError(f"the data corrections (velocity_scale {options.velocity_scale:g}, the biases) take the "
+                          f"{'linear' if i < 3 else 'angular'} velocity of frame {k} to {u[k, i]:.10g}, beyond "
+                          f"±{MAX_IMU_SAMPLE:g}: not a unit the filters can integrate")
     cam_T_imu = np.array(options.cam_T_imu, dtype=np.float64) if options.cam_T_imu is not None else sequence.cam_T_imu
     cam_T_imu = rotate_cam_T_imu(cam_T_imu, options.imu_camera_rotation_correction_deg)
     recorded = sequence.recorded_cam_T_imu

@@ -31,7 +31,7 @@ from vislam.core.lie import se3_inverse
 from vislam.core.options import MODES, FilterOptions
 from vislam.core.results import RunResult
 from vislam.core.sequence import Sequence
-from vislam.errors import ConfigError, EstimationError
+from vislam.errors import ConfigError, DatasetError, EstimationError
 
 logger = logging.getLogger(__name__)
 
@@ -56,6 +56,7 @@ def run(sequence: Sequence, mode: str, options: FilterOptions | None = None, pro
     # the options' data corrections (biases, conventions, calibration; see vislam check);
     # a no-op without any, or when the caller already applied them
     sequence = apply_corrections(sequence, options)
+    _require_velocities(sequence)
     # The filter's matrices are small (a few hundred rows): multi-threaded BLAS only adds
     # synchronization cost there (measured 4x slower on 2 cores), so use one thread (a
     # controller made now sees every BLAS loaded so far; inside single_thread_blas the
@@ -70,6 +71,18 @@ def run(sequence: Sequence, mode: str, options: FilterOptions | None = None, pro
 
             return run_smoother(sequence, options, progress, on_frame=on_frame)
         return run_slam(sequence, options, progress, on_frame=on_frame)
+
+
+def _require_velocities(sequence: Sequence) -> None:
+    """Every estimator integrates the IMU velocities: a non-finite one (a sequence tracked
+    from images without velocities holds NaN) is a DatasetError before any frame."""
+    for name, v in (("linear", sequence.linear_velocity_in_imu_mps), ("angular", sequence.angular_velocity_in_imu_radps)):
+        bad = ~np.isfinite(v)
+        if bad.any():
+            k = int(np.argwhere(bad)[0, 0])
+            raise DatasetError(f"{sequence.name}: the {name} velocity of frame {k} is {v[k].tolist()}; every "
+                               f"estimator needs finite IMU velocities (tracked without velocities? give them: "
+                               f"`vislam track SOURCE --velocities FILE.csv`)")
 
 
 def run_localization(sequence: Sequence, options: FilterOptions | None = None, progress: Progress = None,

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from vislam.core.options import MAX_STD
-from vislam.core.sequence import Sequence, StereoObservations
+from vislam.core.sequence import MAX_IMU_SAMPLE, Sequence, StereoObservations
 from vislam.errors import ConfigError
 
 __all__ = ["NoiseSpec", "inject_noise"]
@@ -100,6 +100,12 @@ def inject_noise(sequence: Sequence, spec: NoiseSpec) -> tuple[Sequence, dict[st
         v = v + rng_v.normal(0.0, spec.velocity_noise_mps, (T, 3))
     if spec.angular_noise_radps:
         w = w + rng_w.normal(0.0, spec.angular_noise_radps, (T, 3))
+    for name, samples in (("linear", v), ("angular", w)):
+        far = np.abs(samples) > MAX_IMU_SAMPLE
+        if far.any():
+            k, i = (int(x) for x in np.argwhere(far)[0])
+            raise ConfigError(f"the added noise and bias take the {name} velocity of frame {k} to "
+                              f"{samples[k, i]:.10g}, beyond ±{MAX_IMU_SAMPLE:g}")
     obs = sequence.observations
     pixels = obs.pixels.copy()
     if spec.pixel_noise_px and pixels.size:

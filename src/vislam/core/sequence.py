@@ -42,6 +42,12 @@ def timestamp_unit_guess(dt: float, frame_interval_s: tuple[float, float] = CAME
     return next(((factor, name) for factor, name in TIMESTAMP_UNITS if lo <= dt * factor <= hi), None)
 
 
+#: The largest IMU sample component accepted at all (m/s and rad/s): far beyond any unit
+#: mistake worth integrating (300 m/s in mm/s is 3e5), and small enough that the filters'
+#: squares and products of samples stay finite (a 1e200 sample overflowed them). Loaders
+#: and ``predict`` refuse a sample beyond it; :data:`IMU_SAMPLE_LIMITS` only warn.
+MAX_IMU_SAMPLE = 1e9
+
 #: IMU samples beyond these are not a vehicle's motion (speed of sound; a MEMS gyro's
 #: usual full scale, 2000 deg/s): a unit mistake or corrupt samples (:func:`imu_sample_warnings`).
 IMU_SAMPLE_LIMITS = {"speed_mps": 343.0, "turn_rate_radps": 35.0}
@@ -404,6 +410,11 @@ class Sequence:
         for name in ("linear_velocity_in_imu_mps", "angular_velocity_in_imu_radps"):
             if getattr(self, name).shape != (t, 3):
                 raise ValueError(f"{name} must have shape ({t}, 3), got {getattr(self, name).shape}")
+            far = np.abs(getattr(self, name)) > MAX_IMU_SAMPLE  # NaN (no velocities) is not refused here
+            if far.any():
+                k, i = np.argwhere(far)[0]
+                raise ValueError(f"{name} has {getattr(self, name)[k, i]:.3g} at frame {k}; expected samples "
+                                 f"within ±{MAX_IMU_SAMPLE:g}")
         if self.observations.n_frames != t:
             raise ValueError(f"observations cover {self.observations.n_frames} frames, timestamps {t}")
         if self.cam_T_imu.shape != (4, 4):

@@ -51,7 +51,7 @@ import numpy as np
 from vislam.core.camera import StereoCamera
 from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.options import MAX_LEVER_ARM_M
-from vislam.core.sequence import MISSING_PIXEL, Sequence, StereoObservations
+from vislam.core.sequence import MAX_IMU_SAMPLE, MISSING_PIXEL, Sequence, StereoObservations
 from vislam.errors import DatasetError
 from vislam.text import printable
 from vislam.tools.npz import write_npz
@@ -434,6 +434,11 @@ def _read_velocity(reader: _NpzReader, key: str, tkey: str, T: int, unit: str) -
     if bad.any():
         r, c = np.unravel_index(_first_index(bad), v.shape)
         raise reader.error(key, f"has a non-finite value {v[r, c]} at row {r}, frame {c}; expected finite {unit}")
+    far = np.abs(v) > MAX_IMU_SAMPLE
+    if far.any():
+        r, c = np.unravel_index(_first_index(far), v.shape)
+        raise reader.error(key, f"has {v[r, c]:.3g} at row {r}, frame {c}; expected {unit} within "
+                           f"±{MAX_IMU_SAMPLE:g} (a corrupt sample, or another unit)")
     return np.ascontiguousarray(v.T)
 
 

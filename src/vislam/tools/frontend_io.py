@@ -67,7 +67,7 @@ import yaml
 from vislam.core.camera import StereoCamera
 from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.options import MAX_LEVER_ARM_M
-from vislam.core.sequence import Sequence
+from vislam.core.sequence import MAX_IMU_SAMPLE, Sequence
 from vislam.errors import DatasetError
 from vislam.tools.config import YAML_VALUE_ERRORS
 
@@ -356,7 +356,11 @@ def _open_kitti(drive: Path, pair: str) -> StereoSource:
     rows = []
     for p in packets:
         values = _floats(_read_text(p, "an OXTS packet (30 numbers)"), p, "packet", 30)
-        rows.append(values[[8, 9, 10, 20, 21, 22]])  # vf vl vu, wf wl wu
+        velocity = values[[8, 9, 10, 20, 21, 22]]  # vf vl vu, wf wl wu
+        if np.any(np.abs(velocity) > MAX_IMU_SAMPLE):
+            raise DatasetError(f"{p}: velocities (vf vl vu, wf wl wu) {velocity.tolist()} beyond "
+                               f"±{MAX_IMU_SAMPLE:g}; expected m/s and rad/s (a corrupt packet)")
+        rows.append(velocity)
     velocities = _interpolate(to, np.array(rows), tl, drive / "oxts" / "timestamps.txt")
     size = calib["image_size_px"]
     if size is None:
@@ -503,6 +507,9 @@ def read_velocity_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
         if not all(math.isfinite(v) for v in values):
             raise DatasetError(f"{path}: line {i + 1} ({line[:60]!r}) has a non-finite value; expected 7 finite "
                                f"numbers t,vx,vy,vz,wx,wy,wz")
+        if any(abs(v) > MAX_IMU_SAMPLE for v in values[1:]):
+            raise DatasetError(f"{path}: line {i + 1} ({line[:60]!r}) has a velocity beyond ±{MAX_IMU_SAMPLE:g}; "
+                               f"expected m/s and rad/s (a corrupt sample, or another unit)")
         rows.append(values)
     if not rows:
         raise DatasetError(f"{path}: holds no rows; expected t,vx,vy,vz,wx,wy,wz lines")
