@@ -116,7 +116,8 @@ def test_predict_refuses_samples_it_cannot_integrate_and_stays_usable(sim, cls):
                          ((0.1, [-2e9, 0, 0], w), "must be finite and within ±1e+09"),
                          ((0.1, [1.0, 0.0], w), "linear_velocity must be 3 numbers (m/s), got shape (2,)"),
                          ((0.1, v, "fast"), "angular_velocity must be 3 numbers (rad/s), got 'fast'"),
-                         (("soon", v, w), "dt_s must be a finite time step >= 0 (s), got 'soon'")):
+                         (("soon", v, w), "dt_s must be a finite time step >= 0 (s), at most 1e+09, got 'soon'"),
+                         ((1e12, v, w), "dt_s must be a finite time step >= 0 (s), at most 1e+09, got 1000000000000.0")):
         with pytest.raises(vislam.ConfigError, match=re.escape(needle)):
             f.predict(*args)
     assert f.diagnostics.failed is None
@@ -160,7 +161,7 @@ def test_update_refuses_pixels_that_are_not_finite_numbers(sim, cls):
     f.step(frames[0])
     ids, pixels = frames[1].landmark_ids, frames[1].pixels.copy()
     pixels[2, 1] = np.inf  # numpy warned "invalid value" in MappingFilter
-    with pytest.raises(vislam.ConfigError, match=rf"pixels must be finite; landmark {ids[2]} has \[.*inf"):
+    with pytest.raises(vislam.ConfigError, match=rf"pixels must be finite and within ±1e\+06; landmark {ids[2]} has \[.*inf"):
         f.update(ids, pixels)
     with pytest.raises(vislam.ConfigError, match="pixels must be numbers"):
         f.update(ids[:1], [["a", "b", "c", "d"]])

@@ -382,6 +382,36 @@ def test_velocities_beyond_any_unit_are_refused(tmp_path, key, value):
     load_sequence(write(tmp_path / "edge.npz", dict(arrays, **{key: bad})))
 
 
+@pytest.mark.parametrize("entry, value, needle", [((0, 0), 1e200, "focal lengths 1e+200, 707.091 px"),
+                                                  ((1, 2), -3e6, "principal point (601.887, -3e+06) px")])
+def test_intrinsics_beyond_any_camera_are_refused(tmp_path, entry, value, needle):
+    """Finite, but a focal length or principal point beyond 1e6 px (1e200 overflowed the
+    filters: a traceback or numpy warnings in every mode)."""
+    arrays = valid_arrays()
+    K = arrays["K"].copy()
+    K[entry] = value
+    assert_refused(write(tmp_path / "k.npz", dict(arrays, K=K)), "K", needle, "1e+06")
+
+
+@pytest.mark.parametrize("order", ["C", "F"])
+def test_pixels_beyond_any_image_are_refused(tmp_path, order):
+    arrays = valid_arrays()
+    feats = arrays["features"].copy()
+    feats[2, 0, 0] = 1e300  # uR of landmark 0 at frame 0 (overflowed the products of pixels)
+    path = write(tmp_path / "p.npz", dict(arrays, features=np.asfortranarray(feats) if order == "F" else feats))
+    assert_refused(path, "features", "landmark 0 at frame 0", "within ±1e+06")
+
+
+def test_a_frame_interval_beyond_any_unit_is_refused_and_nanoseconds_load(tmp_path):
+    arrays = valid_arrays()
+    t = arrays["time_stamps"].copy()
+    t[0, 6:] += 5e9  # 160 years: a 1e290 s interval overflowed the prediction's τ·u
+    assert_refused(write(tmp_path / "t.npz", dict(arrays, time_stamps=t)), "time_stamps",
+                   "frame interval of 5e+09 s at index 6")
+    ns = arrays["time_stamps"] * 1e9  # Unix time in ns: 1e8 per frame, loads (vislam check names the unit)
+    assert load_sequence(write(tmp_path / "ns.npz", dict(arrays, time_stamps=ns))).n_frames == 12
+
+
 @pytest.mark.parametrize("value", [np.nan, np.inf])
 def test_non_finite_timestamps(tmp_path, value):
     arrays = valid_arrays()
@@ -436,11 +466,12 @@ def test_baseline_overflowing_the_stereo_matrix(tmp_path):
 
 
 def test_timestamps_spanning_an_overflow(tmp_path):
+    """-1e308 … 1e308: its span overflows; refused by its first frame interval."""
     arrays = valid_arrays()
     t = arrays["time_stamps"].copy()
     t[0, 0], t[0, -1] = -1e308, 1e308
     arrays["time_stamps"] = t
-    assert_refused(write(tmp_path / "t.npz", arrays), "time_stamps", "overflow")
+    assert_refused(write(tmp_path / "t.npz", arrays), "time_stamps", "frame interval of 1e+308 s at index 1")
 
 
 @pytest.mark.parametrize("index", [(0, 0), (1, 1)])

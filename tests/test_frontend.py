@@ -332,6 +332,10 @@ def _bad_folders(tmp_path):
     cal = p / "calibration.yaml"
     cal.write_text(cal.read_text().replace("[[0, -1, 0, 0]", "[[0, -1, 0, 1e300]"))
     cases["lever arm of 1e300 m"] = (p, "calibration.yaml: the IMU-camera translation is [1e+300")
+    p = _plain_folder(tmp_path / "farcx")
+    cal = p / "calibration.yaml"
+    cal.write_text(cal.read_text().replace("K: [[300.0, 0, ", "K: [[300.0, 0, 1e200], [0, 300.0, 1e200], [0, 0, 1]]\nX: [[0, 0, ", 1))
+    cases["principal point of 1e200 px"] = (p, "calibration.yaml: key 'K' has principal point (1e+200, 1e+200) px")
     p = _plain_folder(tmp_path / "badimg")
     (p / "right" / "000003.png").write_bytes(b"not a png")
     cases["unreadable image"] = (p, "000003.png: cannot be read as an image")

@@ -91,6 +91,25 @@ def dpi_dq(q) -> np.ndarray:
 _XYW = np.array([0, 1, 3])  # the rows of dπ/dq with entries
 
 
+#: The largest focal length or principal-point coordinate accepted (px): a million pixels
+#: is beyond any camera, and keeps the stereo model's products finite (a principal point at
+#: 1e200 px overflowed the filters).
+MAX_INTRINSIC_PX = 1e6
+
+
+def intrinsics_problem(fx: float, fy: float, cx: float, cy: float) -> str | None:
+    """What is wrong with pinhole intrinsics (px), as a phrase for an error message, or
+    None: focal lengths must be in (0, :data:`MAX_INTRINSIC_PX`], the principal point
+    within ±:data:`MAX_INTRINSIC_PX`."""
+    if not all(np.isfinite(x) for x in (fx, fy, cx, cy)):
+        return f"has non-finite intrinsics (fx, fy, cx, cy) = ({fx:g}, {fy:g}, {cx:g}, {cy:g})"
+    if not (0 < fx <= MAX_INTRINSIC_PX and 0 < fy <= MAX_INTRINSIC_PX):
+        return f"has focal lengths {fx:g}, {fy:g} px; expected both in (0, {MAX_INTRINSIC_PX:g}] px"
+    if not (abs(cx) <= MAX_INTRINSIC_PX and abs(cy) <= MAX_INTRINSIC_PX):
+        return f"has principal point ({cx:g}, {cy:g}) px; expected it within ±{MAX_INTRINSIC_PX:g} px"
+    return None
+
+
 @dataclass(frozen=True)
 class StereoCamera:
     """Rectified stereo pair: left intrinsics ``K`` (3x3, pixels) and ``baseline_m`` (m).
@@ -106,6 +125,10 @@ class StereoCamera:
 
     def __post_init__(self):
         K = np.array(self.K, dtype=np.float64)
+        if K.shape == (3, 3):
+            problem = intrinsics_problem(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+            if problem:
+                raise ValueError(f"K {problem}")
         K.setflags(write=False)
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "baseline_m", float(self.baseline_m))

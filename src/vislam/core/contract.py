@@ -76,7 +76,7 @@ import numpy as np
 
 from vislam.core.lie import se3_inverse
 from vislam.core.results import LandmarkMap, RunStats
-from vislam.core.sequence import MAX_IMU_SAMPLE
+from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_PIXEL_COORD, MAX_TIME_STEP_S
 from vislam.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -302,9 +302,11 @@ def checked_dt(dt_s) -> float:
     try:
         dt = float(dt_s)
     except (TypeError, ValueError):
-        raise ConfigError(f"predict: dt_s must be a finite time step >= 0 (s), got {dt_s!r}") from None
-    if not np.isfinite(dt) or dt < 0:
-        raise ConfigError(f"predict: dt_s must be a finite time step >= 0 (s), got {dt_s!r}")
+        raise ConfigError(f"predict: dt_s must be a finite time step >= 0 (s), at most {MAX_TIME_STEP_S:g}, "
+                          f"got {dt_s!r}") from None
+    if not 0 <= dt <= MAX_TIME_STEP_S:  # NaN fails too
+        raise ConfigError(f"predict: dt_s must be a finite time step >= 0 (s), at most {MAX_TIME_STEP_S:g}, "
+                          f"got {dt_s!r}")
     return dt
 
 
@@ -326,10 +328,11 @@ def checked_observations(ids, pixels, trusted: bool = False) -> tuple[np.ndarray
     ids = ids.astype(np.int64, copy=False)
     if ids.size > 1 and np.any(np.diff(ids) <= 0):
         raise ConfigError("update: landmark ids must be strictly increasing within a frame")
-    if not np.isfinite(pixels).all():
-        row = int(np.flatnonzero(~np.isfinite(pixels).all(axis=1))[0])
-        raise ConfigError(f"update: pixels must be finite; landmark {ids[row]} has {pixels[row].tolist()} "
-                          f"(leave an unobserved landmark out of the frame)")
+    ok = np.abs(pixels) <= MAX_PIXEL_COORD  # NaN fails too
+    if not ok.all():
+        row = int(np.flatnonzero(~ok.all(axis=1))[0])
+        raise ConfigError(f"update: pixels must be finite and within ±{MAX_PIXEL_COORD:g}; landmark {ids[row]} has "
+                          f"{pixels[row].tolist()} (leave an unobserved landmark out of the frame)")
     return ids, pixels
 
 

@@ -40,7 +40,7 @@ import numpy as np
 from vislam.core.lie import so3_exp
 from vislam.core.options import DATA_CORRECTION_FIELDS, FilterOptions
 from vislam.core.results import CalibrationUsed
-from vislam.core.sequence import MAX_IMU_SAMPLE, Sequence
+from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_TIME_STEP_S, Sequence
 from vislam.errors import ConfigError
 
 __all__ = ["apply_corrections", "correction_values", "shift_to_current_association", "resample_velocities",
@@ -90,7 +90,11 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
     if sequence.corrections == applied:
         return sequence
     if options.timestamp_scale != 1.0:
-        sequence = sequence.replace(timestamps_s=sequence.timestamps_s * options.timestamp_scale)
+        t = sequence.timestamps_s * options.timestamp_scale
+        if t.size > 1 and float(np.max(np.diff(t))) > MAX_TIME_STEP_S:
+            raise ConfigError(f"timestamp_scale {options.timestamp_scale:g} makes a frame interval of "
+                              f"{float(np.max(np.diff(t))):.3g} s, beyond {MAX_TIME_STEP_S:g} s")
+        sequence = sequence.replace(timestamps_s=t)
     u = sequence.velocities()
     if options.velocity_association == "current":
         u = shift_to_current_association(u)

@@ -25,6 +25,9 @@ __all__ = ["StereoObservations", "Sequence", "Frame", "Calibration", "MISSING_PI
 
 #: Value of all four pixel coordinates where a landmark is not observed (dataset format).
 MISSING_PIXEL = -1.0
+#: The largest pixel coordinate accepted in an observation (absolute, px): far beyond any
+#: image, and small enough that products of pixels stay finite (1e300 overflowed them).
+MAX_PIXEL_COORD = 1e6
 
 
 #: A camera's frame interval (s): outside it, time stamps are likely not in seconds
@@ -47,6 +50,11 @@ def timestamp_unit_guess(dt: float, frame_interval_s: tuple[float, float] = CAME
 #: squares and products of samples stay finite (a 1e200 sample overflowed them). Loaders
 #: and ``predict`` refuse a sample beyond it; :data:`IMU_SAMPLE_LIMITS` only warn.
 MAX_IMU_SAMPLE = 1e9
+
+#: The longest frame interval accepted (s, about 32 years): time stamps in nanoseconds
+#: (1e8 per frame at 10 Hz) still load, so that ``vislam check`` can name their unit, and
+#: the prediction's τ·u and τ²·W stay finite (a 1e290 s interval overflowed them).
+MAX_TIME_STEP_S = 1e9
 
 #: IMU samples beyond these are not a vehicle's motion (speed of sound; a MEMS gyro's
 #: usual full scale, 2000 deg/s): a unit mistake or corrupt samples (:func:`imu_sample_warnings`).

@@ -48,10 +48,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vislam.core.camera import StereoCamera
+from vislam.core.camera import StereoCamera, intrinsics_problem
 from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.options import MAX_LEVER_ARM_M
-from vislam.core.sequence import MAX_IMU_SAMPLE, MISSING_PIXEL, Sequence, StereoObservations
+from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_PIXEL_COORD, MAX_TIME_STEP_S, MISSING_PIXEL, Sequence, StereoObservations
 from vislam.errors import DatasetError
 from vislam.text import printable
 from vislam.tools.npz import write_npz
@@ -410,11 +410,11 @@ def _read_timestamps(reader: _NpzReader, key: str) -> np.ndarray:
             f"is not strictly increasing at index {i} ({float(t[i])!r} after {float(t[i - 1])!r}); "
             f"expected strictly increasing timestamps{hint}",
         )
-    with np.errstate(over="ignore"):
-        span = t[-1] - t[0]
-    if not np.isfinite(span):
-        raise reader.error(key, f"spans {float(t[0])!r} to {float(t[-1])!r}, which overflows; "
-                                "expected timestamps in seconds")
+    long = step > MAX_TIME_STEP_S
+    if long.any():
+        i = _first_index(long) + 1
+        raise reader.error(key, f"has a frame interval of {float(step[i - 1]):.3g} s at index {i}; expected at most "
+                                f"{MAX_TIME_STEP_S:g} s (time stamps in seconds, or in ms, µs or ns)")
     return t
 
 
@@ -457,6 +457,9 @@ def _read_K(reader: _NpzReader, key: str) -> np.ndarray:
         )
     if not np.array_equal(K[2], [0.0, 0.0, 1.0]):
         raise reader.error(key, f"has last row {K[2].tolist()}; expected [0, 0, 1]")
+    problem = intrinsics_problem(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    if problem:
+        raise reader.error(key, problem)
     if K[0, 1] != 0.0 or K[1, 0] != 0.0:
         raise reader.error(
             key,
@@ -526,8 +529,8 @@ def _stream_features(reader: _NpzReader, key: str, tkey: str, T: int) -> tuple[S
         def fail_entry(j: int, t: int, what: str) -> DatasetError:
             return reader.error(
                 key,
-                f"landmark {j} at frame {t}: {what}; expected four finite pixels or -1 in all four "
-                f"coordinates (not observed)",
+                f"landmark {j} at frame {t}: {what}; expected four finite pixels within ±{MAX_PIXEL_COORD:g} or -1 "
+                f"in all four coordinates (not observed)",
             )
 
         if header.fortran_order:
@@ -569,7 +572,7 @@ def _stream_c(fp, decode, M: int, T: int, fail_entry) -> StereoObservations:
         while pos < plane:
             n = min(chunk, plane - pos)
             a = decode(n)
-            finite = np.isfinite(a)
+            finite = np.abs(a) <= MAX_PIXEL_COORD  # finite, and not beyond any image (NaN fails)
             missing = a == MISSING_PIXEL
             if c == 0:
                 seen = ~missing
@@ -584,7 +587,7 @@ def _stream_c(fp, decode, M: int, T: int, fail_entry) -> StereoObservations:
                 bad = (missing == seen) | ~finite
                 if bad.any():
                     def describe(i, c=c, a=a, seen=seen):
-                        if not np.isfinite(a[i]):
+                        if not abs(a[i]) <= MAX_PIXEL_COORD:
                             return f"{_COORDS[c]} is {a[i]}"
                         if seen[i]:
                             return f"{_COORDS[c]} is -1 but uL is not"
@@ -626,7 +629,7 @@ def _stream_fortran(fp, decode, M: int, T: int, fail_entry) -> StereoObservation
         a = decode(4 * n).reshape(n, 4)
         missing = a == MISSING_PIXEL
         unseen = missing.all(axis=1)
-        finite = np.isfinite(a).all(axis=1)
+        finite = (np.abs(a) <= MAX_PIXEL_COORD).all(axis=1)  # finite, and not beyond any image
         bad = ~finite | (missing.any(axis=1) & ~unseen)
         if bad.any():
             i = _first_index(bad)

@@ -64,10 +64,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from vislam.core.camera import StereoCamera
+from vislam.core.camera import StereoCamera, intrinsics_problem
 from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.options import MAX_LEVER_ARM_M
-from vislam.core.sequence import MAX_IMU_SAMPLE, Sequence
+from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_TIME_STEP_S, Sequence
 from vislam.errors import DatasetError
 from vislam.tools.config import YAML_VALUE_ERRORS
 
@@ -195,6 +195,10 @@ def _check_times(t: np.ndarray, path: Path) -> None:
         k = int(np.argmax(np.diff(t) <= 0)) + 1
         raise DatasetError(f"{path}: time stamp {k} ({float(t[k])!r}) is not after the previous one; expected strictly "
                            f"increasing times")
+    if t.size > 1 and np.any(np.diff(t) > MAX_TIME_STEP_S):
+        k = int(np.argmax(np.diff(t) > MAX_TIME_STEP_S)) + 1
+        raise DatasetError(f"{path}: time stamp {k} ({float(t[k])!r}) is {float(t[k] - t[k - 1]):.3g} s after the "
+                           f"previous one; expected at most {MAX_TIME_STEP_S:g} s")
 
 
 def _check_pair_times(t_left: np.ndarray, t_right: np.ndarray, left: Path, right: Path) -> None:
@@ -279,6 +283,9 @@ def read_kitti_calibration(date_dir, pair: str = "grey") -> dict:
     if not (fx > 0 and K[1, 1] > 0 and abs(K[2, 2] - 1) < 1e-9):
         raise DatasetError(f"{c2c}: key 'P_rect_{left}' has focal lengths {fx}, {K[1, 1]}; expected positive focal "
                            f"lengths and a last row 0 0 1 0")
+    problem = intrinsics_problem(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    if problem:
+        raise DatasetError(f"{c2c}: key 'P_rect_{left}' {problem}")
     baseline = (P_l[0, 3] - P_r[0, 3]) / fx
     if not baseline > 0:
         raise DatasetError(f"{c2c}: keys 'P_rect_{left}'/'P_rect_{right}' give a baseline of {baseline} m; expected "
@@ -424,6 +431,9 @@ def _euroc_camera(cam_dir: Path):
     if not (fu > 0 and fv > 0):
         raise DatasetError(f"{yaml_path}: key 'intrinsics' has focal lengths fu = {fu:g}, fv = {fv:g} px; expected "
                            "[fu, fv, cu, cv] with fu, fv > 0")
+    problem = intrinsics_problem(fu, fv, cu, cv)
+    if problem:
+        raise DatasetError(f"{yaml_path}: key 'intrinsics' {problem}")
     D = _yaml_numbers(doc, yaml_path, "distortion_coefficients", 4)
     resolution = _yaml_numbers(doc, yaml_path, "resolution", 2)
     if not np.all((resolution >= 1) & (resolution == np.round(resolution))):
@@ -588,6 +598,9 @@ def _open_folder(root: Path, velocities_csv) -> StereoSource:
     K = _yaml_matrix(doc, cal, "K", (3, 3))
     if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1]) and K[1, 0] == 0 and K[0, 1] == 0):
         raise DatasetError(f"{cal}: key 'K' is {K.tolist()}; expected [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0")
+    problem = intrinsics_problem(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    if problem:
+        raise DatasetError(f"{cal}: key 'K' {problem}")
     baseline = float(_yaml_numbers(doc, cal, "baseline", 1)[0])
     if not baseline > 0:
         raise DatasetError(f"{cal}: key 'baseline' is {baseline}; expected a positive baseline in metres")
