@@ -49,13 +49,13 @@ def test_clean_drive_gives_no_warning(drive, mode):
 
 
 @pytest.mark.parametrize("mode", _modes())
-@pytest.mark.parametrize("how", ["negative disparity", "pixels x 1e200"])
+@pytest.mark.parametrize("how", ["negative disparity", "zero disparity"])
 def test_no_landmark_ever_used_warns(drive, mode, how):
     px = drive.observations.pixels.copy()
     if how == "negative disparity":
         px[:, [0, 2]] = px[:, [2, 0]]
     else:
-        px *= 1e200
+        px[:, 2] = px[:, 0]
     r = vislam.run(_with_pixels(drive, px), mode, vislam.FilterOptions())
     assert not r.partial and r.stats.observations_used == 0
     warnings = run_warnings(r)
@@ -118,9 +118,9 @@ def test_slam_goes_on_after_an_hour_without_frames():
 
 @pytest.mark.parametrize("unit, scale, fix", [("milliseconds", 1e3, "timestamp_scale 0.001"),
                                                ("microseconds", 1e6, "timestamp_scale 1e-06"),
-                                               ("none", 1e12, "not a frame clock")])
+                                               ("none", 30.0, "not a frame clock")])
 def test_time_stamps_not_in_seconds_warn_and_the_fix_silences_it(drive, unit, scale, fix):
-    """Time stamps in ms (µs, or no clock at all): frames 100 s apart. The run warns and
+    """Time stamps in ms (µs, or no clock at all: frames 3 s apart). The run warns and
     names the fix; with it (timestamp_scale, as `vislam check` suggests) no warning."""
     t = drive.timestamps_s * scale
     r = vislam.run(drive.replace(timestamps_s=t), "localization", vislam.FilterOptions())

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from vislam.core.options import MAX_STD
-from vislam.core.sequence import MAX_IMU_SAMPLE, Sequence, StereoObservations
+from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_PIXEL_COORD, Sequence, StereoObservations
 from vislam.errors import ConfigError
 
 __all__ = ["NoiseSpec", "inject_noise"]
@@ -125,6 +125,11 @@ def inject_noise(sequence: Sequence, spec: NoiseSpec) -> tuple[Sequence, dict[st
         disparity = rng_out.uniform(1.0, 60.0, size=n_out)
         pixels[rows] = np.column_stack([uv[:, 0], uv[:, 1], uv[:, 0] - disparity, uv[:, 1]])
         info["outliers_injected"] = n_out
+    far = ~(np.abs(pixels) <= MAX_PIXEL_COORD)
+    if far.any():
+        row = int(np.flatnonzero(far.any(axis=1))[0])
+        raise ConfigError(f"the added pixel noise ({spec.pixel_noise_px:g} px) takes an observation of frame "
+                          f"{int(obs.frame_index[row])} to {pixels[row].tolist()}, beyond ±{MAX_PIXEL_COORD:g} px")
     noisy_obs = StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels, obs.n_landmarks)
     out = sequence.replace(linear_velocity_in_imu_mps=v, angular_velocity_in_imu_radps=w, observations=noisy_obs,
                            name=sequence.name)

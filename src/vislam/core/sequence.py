@@ -122,6 +122,10 @@ class StereoObservations:
             raise ValueError("frame_offsets must start at 0, be non-decreasing and end at len(landmark_ids)")
         if self.pixels.shape[0] != n:
             raise ValueError("pixels and landmark_ids differ in length")
+        if n and not (np.abs(self.pixels) <= MAX_PIXEL_COORD).all():  # NaN fails too
+            row = int(np.flatnonzero(~(np.abs(self.pixels) <= MAX_PIXEL_COORD).all(axis=1))[0])
+            raise ValueError(f"pixels must be finite and within ±{MAX_PIXEL_COORD:g}; observation {row} has "
+                             f"{self.pixels[row].tolist()}")
         if n and (self.landmark_ids.min() < 0 or self.landmark_ids.max() >= self.n_landmarks):
             raise ValueError("landmark_ids out of range [0, n_landmarks)")
         if n > 1:
