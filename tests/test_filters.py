@@ -250,3 +250,7 @@ def test_a_full_state_lets_the_lowest_ids_in_bounds_its_size_and_says_so():
     ate = {name: float(np.sqrt(np.mean(np.sum((r.world_T_imu[:, :3, 3] - truth) ** 2, axis=1))))
            for name, r in (("capped", capped), ("dead", dead))}
     assert ate["capped"] < 0.5 * ate["dead"], ate
+    # with delayed initialization, a landmark that passed its static test waits in its window
+    delayed = vislam.run(seq, "slam", options.replace(max_landmarks_in_state=cap, init_frames=3))
+    assert not delayed.partial and delayed.stats.max_state_landmarks == cap
+    assert delayed.stats.observations_state_full > 0

@@ -409,13 +409,15 @@ class _PendingLandmarks:
             self.waiting.remove(ids[~in_sorted(ids, ids_seen)])
 
     def admit(self, ids: np.ndarray, z: np.ndarray, t: int, imu_T_world: np.ndarray, tau2_sum: float,
-              stats: RunStats):
-        """Return the (ids, pixels) to initialize now among candidates observed at t.
+              stats: RunStats, room: int | None = None):
+        """Return the (ids, pixels) to initialize now among candidates observed at t: at
+        most ``room`` of them, lowest ids first; the others that passed keep waiting (their
+        window goes on) and are counted in ``stats.observations_state_full``.
 
         ``tau2_sum``: Σ τ² of the prediction steps so far (the IMU noise between two
         frames is (Σ τ²)(t) − (Σ τ²)(t₀) times W)."""
         if self.n <= 1:
-            return ids, z
+            return _within_room(ids, z, room, stats)
         w = self.waiting
         rows = w.rows(ids)
         w.add(ids[rows < 0])
@@ -453,8 +455,9 @@ class _PendingLandmarks:
                 stats.landmarks_rejected += int(out.size)
                 p_w, cov = mapping_initialize(self._model, imu_T_world, r_z[out_sel], opts.V)
                 self.freeze_rejected(out, p_w, cov)
-        w.remove(r_ids[ok])
-        return r_ids[ok], r_z[ok]
+        a_ids, a_z = _within_room(r_ids[ok], r_z[ok], room, stats)
+        w.remove(a_ids)
+        return a_ids, a_z
 
     def _open(self, rows: np.ndarray, t: int, z: np.ndarray, imu_T_world: np.ndarray, tau2_sum: float) -> None:
         """(Re)start the waiting window of ``rows`` at frame t with pixels ``z``."""
@@ -463,6 +466,16 @@ class _PendingLandmarks:
         w["pixels"][rows] = z
         w["pose"][rows] = imu_T_world
         w["tau2"][rows] = tau2_sum
+
+
+def _within_room(ids: np.ndarray, z: np.ndarray, room: int | None, stats: RunStats):
+    """The first ``room`` of (ids, pixels) (ids increasing: the lowest), counting the rest
+    in ``stats`` (they wait: the SLAM state is full)."""
+    if room is None or ids.size <= room:
+        return ids, z
+    stats.observations_state_full += int(ids.size - room)
+    stats.frames_state_full += 1
+    return ids[:room], z[:room]
 
 
 class SlamFilter(_FrozenLog, StepwiseFilter):
@@ -801,12 +814,10 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         good = initialization_guard(self.calibration.camera, z, self.options)
         self.stats.observations_not_initialized += int((~good).sum())
         if good.any():
-            g_ids, g_z = self._pending.admit(ids[good], z[good], t, self._state.imu_T_world, self._tau2_sum, self.stats)
+            # at most max_landmarks_in_state in the state: when it is full, the others wait
             room = max(self.options.max_landmarks_in_state - self._state.n_landmarks, 0)
-            if g_ids.size > room:  # the state is full: the lowest ids enter, the others wait
-                self.stats.observations_state_full += int(g_ids.size - room)
-                self.stats.frames_state_full += 1
-                g_ids, g_z = g_ids[:room], g_z[:room]
+            g_ids, g_z = self._pending.admit(ids[good], z[good], t, self._state.imu_T_world, self._tau2_sum, self.stats,
+                                             room)
             if g_ids.size:
                 slam_initialize_landmarks(self._state, self._model, g_ids, g_z, self._V, N_pose, self._velocity_var)
                 self._tracks.started(g_ids, t)
