@@ -14,11 +14,13 @@ Construction: ``Filter(calibration, options)`` (``sequence.calibration`` and a
 Input, one frame at a time:
 
 * ``predict(dt_s, linear_velocity, angular_velocity)`` — the IMU sample of the interval
-  ending at the next frame (s, m/s, rad/s, IMU frame); ``dt_s`` must be finite and >= 0
-  (:func:`checked_dt`). Called before every ``update`` but the first.
+  ending at the next frame (s, m/s, rad/s, IMU frame); ``dt_s`` must be finite, >= 0 and
+  at most :data:`~vislam.core.sequence.MAX_TIME_STEP_S` (:func:`checked_dt`), the two
+  samples 3 finite numbers each within ±:data:`~vislam.core.sequence.MAX_IMU_SAMPLE`
+  (:func:`twist`). Called before every ``update`` but the first.
 * ``update(ids, pixels)`` — the stereo observations of the new frame: landmark ids
-  (n,), strictly increasing integers, and pixels (n, 4) ``uL, vL, uR, vR``
-  (:func:`checked_observations`). Returns the :class:`FrameStats` of the last frame
+  (n,), strictly increasing integers, and pixels (n, 4) ``uL, vL, uR, vR``, finite and
+  within ±:data:`~vislam.core.sequence.MAX_PIXEL_COORD` (:func:`checked_observations`). Returns the :class:`FrameStats` of the last frame
   finished. The mapping filter also takes the known pose, ``world_T_imu=``.
 * ``step(frame)`` — both, from a :class:`~vislam.core.sequence.Frame` (no prediction for
   the first frame). Bad input raises :class:`~vislam.errors.ConfigError`; a numerical
