@@ -22,7 +22,8 @@ import numpy as np
 
 from vislam.core.results import LandmarkMap, RunStats
 
-__all__ = ["IdTable", "TrackTable", "RepeatDetector", "MapBuilder", "in_sorted", "sorted_positions", "sorted_lookup"]
+__all__ = ["IdTable", "TrackTable", "RepeatDetector", "MapBuilder", "in_sorted", "sorted_positions", "sorted_lookup",
+           "admitted_count"]
 
 
 def sorted_positions(a: np.ndarray, sorted_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -353,3 +354,15 @@ class MapBuilder:
         return LandmarkMap(ids=out["ids"], track=track, p_lm_in_world=out["p"], covariance=out["cov"],
                            n_observations=out["nobs"], n_gated=out["ngated"], first_frame=out["first"],
                            last_frame=out["last"], status=out["status"], v_lm_in_world=out["v"])
+
+
+def admitted_count(n_candidates: int, room: int | None, stats: RunStats) -> int:
+    """How many of ``n_candidates`` new landmarks (ids increasing: the lowest first) enter a
+    state or window with ``room`` free places (None: all of them); the others wait, counted
+    in ``stats.observations_state_full`` and ``stats.frames_state_full``
+    (``max_landmarks_in_state``, the SLAM EKF and the smoother alike)."""
+    if room is None or n_candidates <= room:
+        return n_candidates
+    stats.observations_state_full += int(n_candidates - room)
+    stats.frames_state_full += 1
+    return room

@@ -78,7 +78,7 @@ import numpy as np
 
 from vislam.core.lie import se3_inverse
 from vislam.core.results import LandmarkMap, RunStats
-from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_PIXEL_COORD, MAX_TIME_STEP_S
+from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_PIXEL_COORD, MAX_TIME_STEP_S, first_pixel_row_beyond
 from vislam.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -330,9 +330,8 @@ def checked_observations(ids, pixels, trusted: bool = False) -> tuple[np.ndarray
     ids = ids.astype(np.int64, copy=False)
     if ids.size > 1 and np.any(np.diff(ids) <= 0):
         raise ConfigError("update: landmark ids must be strictly increasing within a frame")
-    ok = np.abs(pixels) <= MAX_PIXEL_COORD  # NaN fails too
-    if not ok.all():
-        row = int(np.flatnonzero(~ok.all(axis=1))[0])
+    row = first_pixel_row_beyond(pixels)
+    if row is not None:
         raise ConfigError(f"update: pixels must be finite and within ±{MAX_PIXEL_COORD:g}; landmark {ids[row]} has "
                           f"{pixels[row].tolist()} (leave an unobserved landmark out of the frame)")
     return ids, pixels

@@ -40,7 +40,7 @@ import numpy as np
 from vislam.core.lie import so3_exp
 from vislam.core.options import DATA_CORRECTION_FIELDS, FilterOptions
 from vislam.core.results import CalibrationUsed
-from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_TIME_STEP_S, Sequence
+from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_TIME_STEP_S, Sequence, first_sample_beyond
 from vislam.errors import ConfigError
 
 __all__ = ["apply_corrections", "correction_values", "shift_to_current_association", "resample_velocities",
@@ -91,9 +91,10 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
         return sequence
     if options.timestamp_scale != 1.0:
         t = sequence.timestamps_s * options.timestamp_scale
-        if t.size > 1 and float(np.max(np.diff(t))) > MAX_TIME_STEP_S:
+        longest = float(np.max(np.diff(t))) if t.size > 1 else 0.0
+        if longest > MAX_TIME_STEP_S:
             raise ConfigError(f"timestamp_scale {options.timestamp_scale:g} makes a frame interval of "
-                              f"{float(np.max(np.diff(t))):.3g} s, beyond {MAX_TIME_STEP_S:g} s")
+                              f"{longest:.3g} s, beyond {MAX_TIME_STEP_S:g} s")
         sequence = sequence.replace(timestamps_s=t)
     u = sequence.velocities()
     if options.velocity_association == "current":
@@ -109,9 +110,9 @@ def apply_corrections(sequence: Sequence, options: FilterOptions) -> Sequence:
         u = u.copy()
         u[:, :3] *= options.velocity_scale
     u = u - np.concatenate([np.asarray(options.velocity_bias_mps), np.asarray(options.gyro_bias_radps)])
-    far = np.abs(u) > MAX_IMU_SAMPLE
-    if far.any():
-        k, i = (int(x) for x in np.argwhere(far)[0])
+    far = first_sample_beyond(u)
+    if far is not None:
+        k, i = far
         raise ConfigError(f"the data corrections (velocity_scale {options.velocity_scale:g}, the biases) take the "
                           f"{'linear' if i < 3 else 'angular'} velocity of frame {k} to {u[k, i]:.10g}, beyond "
                           f"±{MAX_IMU_SAMPLE:g}: not a unit the filters can integrate")

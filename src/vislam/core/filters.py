@@ -53,7 +53,7 @@ from vislam.core.contract import (
 from vislam.core.contract import checked_dt as _check_dt
 from vislam.core.contract import checked_observations as _observations
 from vislam.core.contract import twist as _twist
-from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, in_sorted
+from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, admitted_count, in_sorted
 from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
 from vislam.core.propagation import (ImuBias, bias_twist_jacobian, body_twist, predict_pose, predict_state,
@@ -417,7 +417,8 @@ class _PendingLandmarks:
         ``tau2_sum``: Σ τ² of the prediction steps so far (the IMU noise between two
         frames is (Σ τ²)(t) − (Σ τ²)(t₀) times W)."""
         if self.n <= 1:
-            return _within_room(ids, z, room, stats)
+            k = admitted_count(ids.size, room, stats)
+            return ids[:k], z[:k]
         w = self.waiting
         rows = w.rows(ids)
         w.add(ids[rows < 0])
@@ -455,7 +456,8 @@ class _PendingLandmarks:
                 stats.landmarks_rejected += int(out.size)
                 p_w, cov = mapping_initialize(self._model, imu_T_world, r_z[out_sel], opts.V)
                 self.freeze_rejected(out, p_w, cov)
-        a_ids, a_z = _within_room(r_ids[ok], r_z[ok], room, stats)
+        k = admitted_count(int(ok.sum()), room, stats)
+        a_ids, a_z = r_ids[ok][:k], r_z[ok][:k]
         w.remove(a_ids)
         return a_ids, a_z
 
@@ -466,16 +468,6 @@ class _PendingLandmarks:
         w["pixels"][rows] = z
         w["pose"][rows] = imu_T_world
         w["tau2"][rows] = tau2_sum
-
-
-def _within_room(ids: np.ndarray, z: np.ndarray, room: int | None, stats: RunStats):
-    """The first ``room`` of (ids, pixels) (ids increasing: the lowest), counting the rest
-    in ``stats`` (they wait: the SLAM state is full)."""
-    if room is None or ids.size <= room:
-        return ids, z
-    stats.observations_state_full += int(ids.size - room)
-    stats.frames_state_full += 1
-    return ids[:room], z[:room]
 
 
 class SlamFilter(_FrozenLog, StepwiseFilter):

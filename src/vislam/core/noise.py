@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from vislam.core.options import MAX_STD
-from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_PIXEL_COORD, Sequence, StereoObservations
+from vislam.core.sequence import (MAX_IMU_SAMPLE, MAX_PIXEL_COORD, Sequence, StereoObservations,
+                                   first_pixel_row_beyond, first_sample_beyond)
 from vislam.errors import ConfigError
 
 __all__ = ["NoiseSpec", "inject_noise"]
@@ -101,9 +102,9 @@ def inject_noise(sequence: Sequence, spec: NoiseSpec) -> tuple[Sequence, dict[st
     if spec.angular_noise_radps:
         w = w + rng_w.normal(0.0, spec.angular_noise_radps, (T, 3))
     for name, samples in (("linear", v), ("angular", w)):
-        far = np.abs(samples) > MAX_IMU_SAMPLE
-        if far.any():
-            k, i = (int(x) for x in np.argwhere(far)[0])
+        far = first_sample_beyond(samples)
+        if far is not None:
+            k, i = far
             raise ConfigError(f"the added noise and bias take the {name} velocity of frame {k} to "
                               f"{samples[k, i]:.10g}, beyond ±{MAX_IMU_SAMPLE:g}")
     obs = sequence.observations
@@ -125,9 +126,8 @@ def inject_noise(sequence: Sequence, spec: NoiseSpec) -> tuple[Sequence, dict[st
         disparity = rng_out.uniform(1.0, 60.0, size=n_out)
         pixels[rows] = np.column_stack([uv[:, 0], uv[:, 1], uv[:, 0] - disparity, uv[:, 1]])
         info["outliers_injected"] = n_out
-    far = ~(np.abs(pixels) <= MAX_PIXEL_COORD)
-    if far.any():
-        row = int(np.flatnonzero(far.any(axis=1))[0])
+    row = first_pixel_row_beyond(pixels)
+    if row is not None:
         raise ConfigError(f"the added pixel noise ({spec.pixel_noise_px:g} px) takes an observation of frame "
                           f"{int(obs.frame_index[row])} to {pixels[row].tolist()}, beyond ±{MAX_PIXEL_COORD:g} px")
     noisy_obs = StereoObservations(obs.frame_offsets, obs.landmark_ids, pixels, obs.n_landmarks)

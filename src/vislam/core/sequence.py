@@ -51,6 +51,25 @@ def timestamp_unit_guess(dt: float, frame_interval_s: tuple[float, float] = CAME
 #: and ``predict`` refuse a sample beyond it; :data:`IMU_SAMPLE_LIMITS` only warn.
 MAX_IMU_SAMPLE = 1e9
 
+def first_sample_beyond(samples: np.ndarray) -> tuple[int, int] | None:
+    """(frame, column) of the first IMU sample of ``samples`` (T, k) beyond
+    ±:data:`MAX_IMU_SAMPLE`, or None (NaN is not counted: no velocities)."""
+    far = np.abs(samples) > MAX_IMU_SAMPLE
+    if not far.any():
+        return None
+    k, i = np.argwhere(far)[0]
+    return int(k), int(i)
+
+
+def first_pixel_row_beyond(pixels: np.ndarray) -> int | None:
+    """Row of the first observation of ``pixels`` (n, 4) not finite and within
+    ±:data:`MAX_PIXEL_COORD`, or None."""
+    ok = np.abs(pixels) <= MAX_PIXEL_COORD  # NaN fails too
+    if ok.all():
+        return None
+    return int(np.flatnonzero(~ok.all(axis=1))[0])
+
+
 #: The longest frame interval accepted (s, about 32 years): time stamps in nanoseconds
 #: (1e8 per frame at 10 Hz) still load, so that ``vislam check`` can name their unit, and
 #: the prediction's τ·u and τ²·W stay finite (a 1e290 s interval overflowed them).
@@ -122,8 +141,8 @@ class StereoObservations:
             raise ValueError("frame_offsets must start at 0, be non-decreasing and end at len(landmark_ids)")
         if self.pixels.shape[0] != n:
             raise ValueError("pixels and landmark_ids differ in length")
-        if n and not (np.abs(self.pixels) <= MAX_PIXEL_COORD).all():  # NaN fails too
-            row = int(np.flatnonzero(~(np.abs(self.pixels) <= MAX_PIXEL_COORD).all(axis=1))[0])
+        row = first_pixel_row_beyond(self.pixels)
+        if row is not None:
             raise ValueError(f"pixels must be finite and within ±{MAX_PIXEL_COORD:g}; observation {row} has "
                              f"{self.pixels[row].tolist()}")
         if n and (self.landmark_ids.min() < 0 or self.landmark_ids.max() >= self.n_landmarks):
@@ -422,9 +441,9 @@ class Sequence:
         for name in ("linear_velocity_in_imu_mps", "angular_velocity_in_imu_radps"):
             if getattr(self, name).shape != (t, 3):
                 raise ValueError(f"{name} must have shape ({t}, 3), got {getattr(self, name).shape}")
-            far = np.abs(getattr(self, name)) > MAX_IMU_SAMPLE  # NaN (no velocities) is not refused here
-            if far.any():
-                k, i = np.argwhere(far)[0]
+            far = first_sample_beyond(getattr(self, name))  # NaN (no velocities) is not refused here
+            if far is not None:
+                k, i = far
                 raise ValueError(f"{name} has {getattr(self, name)[k, i]:.3g} at frame {k}; expected samples "
                                  f"within ±{MAX_IMU_SAMPLE:g}")
         if self.observations.n_frames != t:

@@ -72,7 +72,7 @@ import time
 
 import numpy as np
 
-from vislam.core.bookkeeping import MapBuilder, RepeatDetector, sorted_positions
+from vislam.core.bookkeeping import MapBuilder, RepeatDetector, admitted_count, sorted_positions
 from vislam.core.contract import FrameStats, FrameStatsCounter, LandmarkEstimates, StepwiseFilter
 from vislam.core.contract import checked_dt as _check_dt
 from vislam.core.contract import checked_observations as _observations
@@ -601,10 +601,7 @@ class SmootherFilter(StepwiseFilter):
         self.stats.observations_not_initialized += int((~good).sum())
         candidates = np.flatnonzero(good)  # in id order (ids_seen is sorted)
         room = max(self.options.max_landmarks_in_state - len(self._landmarks), 0)
-        if candidates.size > room:  # the window is full: the lowest ids enter, the others wait
-            good[candidates[room:]] = False
-            self.stats.observations_state_full += int(candidates.size - room)
-            self.stats.frames_state_full += 1
+        good[candidates[admitted_count(candidates.size, room, self.stats):]] = False  # a full window: the rest wait
         new_frame = np.array(new_frame)
         for k in np.unique(new_frame[good]):
             sel = np.flatnonzero(good & (new_frame == k))
