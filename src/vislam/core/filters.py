@@ -53,6 +53,7 @@ from vislam.core.contract import (
 from vislam.core.contract import checked_dt as _check_dt
 from vislam.core.contract import checked_observations as _observations
 from vislam.core.contract import twist as _twist
+from vislam.core import dense
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, admitted_count, in_sorted
 from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
@@ -769,7 +770,7 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         a point on a moving vehicle drifts one way. Returns ``ok`` without the movers
         (they are rejected at once by :meth:`_reject`)."""
         tracks = self._tracks
-        w = np.linalg.solve(Lt, (r - Ht @ correction)[:, :, None])[:, :, 0]
+        w = dense.solve(Lt, (r - Ht @ correction)[:, :, None])[:, :, 0]
         drift_sum, drift_n = tracks["drift_sum"], tracks["drift_n"]
         drift_sum[rows] += np.where(ok[:, None], w, 0.0)
         drift_n[rows] += ok

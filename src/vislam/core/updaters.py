@@ -26,8 +26,8 @@ import math
 
 import numpy as np
 from scipy.linalg import solve_triangular
-from scipy.linalg.lapack import dtrtrs
 
+from vislam.core import dense
 from vislam.core.camera import StereoCamera, dpi_dq
 from vislam.core.lie import se3_exp, se3_inverse, se3_log, se3_odot
 from vislam.core.state import POSE_DIM, SlamState
@@ -142,7 +142,7 @@ def innovation_nis(r: np.ndarray, S: np.ndarray) -> np.ndarray:
     if r.shape[0] == 0:
         return np.zeros(0)
     try:
-        x = np.linalg.solve(S, r[:, :, None])[:, :, 0]
+        x = dense.solve(S, r[:, :, None])[:, :, 0]
     except np.linalg.LinAlgError:
         return np.array([_nis_or_inf(r[i], S[i]) for i in range(r.shape[0])])
     return np.einsum("ki,ki->k", r, x)
@@ -150,7 +150,7 @@ def innovation_nis(r: np.ndarray, S: np.ndarray) -> np.ndarray:
 
 def _nis_or_inf(r: np.ndarray, S: np.ndarray) -> float:
     try:
-        return float(r @ np.linalg.solve(S, r))
+        return float(r @ dense.solve(S, r))
     except np.linalg.LinAlgError:
         return math.inf
 
@@ -245,12 +245,12 @@ def conditional_residual_model(blocks, Hp: np.ndarray, Hl: np.ndarray, V: np.nda
     k, _, d = P_ps.shape
     # Σ_pp⁻¹ Σ_ps of every landmark as one solve with 6 x dk right-hand sides (LAPACK solves
     # column by column: the same numbers as k broadcast solves of one matrix, 2.5x faster)
-    X = np.linalg.solve(P_pp + _EPS_EYE6, np.swapaxes(P_ps, 0, 1).reshape(POSE_DIM, k * d))
+    X = dense.solve(P_pp + _EPS_EYE6, np.swapaxes(P_ps, 0, 1).reshape(POSE_DIM, k * d))
     G = X.reshape(POSE_DIM, k, d).transpose(1, 2, 0)  # Σ_sp Σ_pp⁻¹ (k, d, 6)
     Ht = Hp + Hl @ G
     C = P_ss - G @ P_ps  # Σ_ss − Σ_sp Σ_pp⁻¹ Σ_ps
     St = Hl @ C @ np.swapaxes(Hl, 1, 2) + V
-    return Ht, np.linalg.cholesky(0.5 * (St + np.swapaxes(St, 1, 2)))
+    return Ht, dense.cholesky(0.5 * (St + np.swapaxes(St, 1, 2)))
 
 
 _EPS_EYE6 = 1e-12 * np.eye(POSE_DIM)
@@ -272,23 +272,8 @@ def oc_project(Hp: np.ndarray, Hl: np.ndarray, N_pose: np.ndarray, N_lm: np.ndar
     N_lmT = np.swapaxes(N_lm, 1, 2)  # (k, 6, d)
     HN = Hp @ N_pose + Hl @ N_lm  # H N  (k, 4, 6)
     NtN = N_pose.T @ N_pose + N_lmT @ N_lm  # Nᵀ N  (k, 6, 6), symmetric
-    Z = np.swapaxes(np.linalg.solve(NtN, np.swapaxes(HN, 1, 2)), 1, 2)  # H N (Nᵀ N)⁻¹  (k, 4, 6)
+    Z = np.swapaxes(dense.solve(NtN, np.swapaxes(HN, 1, 2)), 1, 2)  # H N (Nᵀ N)⁻¹  (k, 4, 6)
     return Hp - Z @ N_pose.T, Hl - Z @ N_lmT  # H* = H − H N (Nᵀ N)⁻¹ Nᵀ, split by blocks
-
-
-def _solve_lower(L: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """L⁻¹ b for a lower-triangular float64 L: ``solve_triangular(L, b, lower=True,
-    check_finite=False)`` without its validation and dispatch (~80 µs a call, several
-    calls per frame) — the same LAPACK call (trtrs), hence the same result."""
-    if L.flags.f_contiguous:
-        x, info = dtrtrs(L, b, lower=1, trans=0)
-    else:  # trtrs expects Fortran order: solve the transposed system with Lᵀ's view
-        x, info = dtrtrs(L.T, b, lower=0, trans=1)
-    if info > 0:
-        raise np.linalg.LinAlgError(f"singular matrix: resolution failed at diagonal {info - 1}")
-    if info < 0:
-        raise ValueError(f"illegal value in {-info}-th argument of internal trtrs")
-    return x
 
 
 def _apply_correction(state: SlamState, dx: np.ndarray) -> None:
@@ -323,7 +308,7 @@ def _innovation_terms(P: np.ndarray, rows: np.ndarray, Hp: np.ndarray, Hl: np.nd
     S = Hp.reshape(k * m, POSE_DIM) @ PHt[:POSE_DIM]  # (mk, mk)
     S += (Hl @ PHt[rows]).reshape(k * m, k * m)
     S.reshape(-1)[::k * m + 1] += np.tile(var, k)  # + I ⊗ R_i (the diagonal, as a strided view)
-    return PHt, np.linalg.cholesky(S)  # S = L Lᵀ (reads the lower triangle)
+    return PHt, dense.cholesky(S)  # S = L Lᵀ (reads the lower triangle)
 
 
 def compress_stereo(r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray):
@@ -371,8 +356,8 @@ def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarr
     P = state.cov
     rows = state.landmark_rows(slots)  # (k, 3)
     PHt, L = _innovation_terms(P, rows, Hp, Hl, var)
-    B = _solve_lower(L, PHt.T)  # B = L⁻¹ H Σ
-    y = _solve_lower(L, r.reshape(-1))  # y = L⁻¹ r
+    B = dense.solve_lower(L, PHt.T)  # B = L⁻¹ H Σ
+    y = dense.solve_lower(L, r.reshape(-1))  # y = L⁻¹ r
     dx = B.T @ y  # δ = K r = Σ Hᵀ S⁻¹ r
     if factors is not None:  # dx: K r, what gain_times(factors, r) computes (the same operations)
         factors.update(L=L, B=B, compressed=r.shape[1] == 3, dx=dx)
@@ -386,7 +371,7 @@ def gain_times(factors: dict, dr: np.ndarray) -> np.ndarray:
     (K = Σ Hᵀ S⁻¹ = Bᵀ L⁻¹, the rows compressed as that update did)."""
     if factors["compressed"]:  # the rows of compress_stereo: uL, (vL + vR)/2, uR
         dr = np.stack([dr[:, 0], 0.5 * (dr[:, 1] + dr[:, 3]), dr[:, 2]], axis=1)
-    y = _solve_lower(factors["L"], dr.reshape(-1))
+    y = dense.solve_lower(factors["L"], dr.reshape(-1))
     return factors["B"].T @ y
 
 
@@ -396,7 +381,7 @@ def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
     P = state.cov
     pose = dx[:POSE_DIM]
     try:
-        size = float(pose @ np.linalg.solve(P[:POSE_DIM, :POSE_DIM], pose))
+        size = float(pose @ dense.solve(P[:POSE_DIM, :POSE_DIM], pose))
     except np.linalg.LinAlgError:  # a singular block (zero IMU noise): the step lies in its range
         size = float(pose @ np.linalg.lstsq(P[:POSE_DIM, :POSE_DIM], pose, rcond=None)[0])
     if len(slots):
@@ -406,7 +391,7 @@ def _step_size(state: SlamState, slots: np.ndarray, dx: np.ndarray) -> float:
         P_ll = P[rows[:, :, None], rows[:, None, :]]
         e = dx[rows]
         try:
-            q = np.einsum("ki,ki->k", e, np.linalg.solve(P_ll, e[:, :, None])[:, :, 0])
+            q = np.einsum("ki,ki->k", e, dense.solve(P_ll, e[:, :, None])[:, :, 0])
         except np.linalg.LinAlgError:
             q = np.array([float(ek @ np.linalg.lstsq(Pk, ek, rcond=None)[0]) for Pk, ek in zip(P_ll, e)])
         size = max(size, q.max().item())  # (the method: np.max's dispatch costs more than the reduction)
@@ -772,7 +757,7 @@ def mapping_update(model: StereoModel, imu_T_world: np.ndarray, mean: np.ndarray
     new_mean = mean.copy()
     new_cov = cov.copy()
     if np.any(ok):
-        K = np.swapaxes(np.linalg.solve(S[ok], np.swapaxes(PHt[ok], 1, 2)), 1, 2)  # K = Σ Hᵀ S⁻¹ (S symmetric)
+        K = np.swapaxes(dense.solve(S[ok], np.swapaxes(PHt[ok], 1, 2)), 1, 2)  # K = Σ Hᵀ S⁻¹ (S symmetric)
         new_mean[ok] = mean[ok] + np.einsum("kij,kj->ki", K, r[ok])  # m + K r
         c = cov[ok] - K @ S[ok] @ np.swapaxes(K, 1, 2)  # Σ − K S Kᵀ
         new_cov[ok] = 0.5 * (c + np.swapaxes(c, 1, 2))
