@@ -380,6 +380,7 @@ class _TrackPairs:
         self.camera = sequence.camera
         self.window = window
         self.n_frames = sequence.n_frames
+        self._inverse_cache = None  # see _relative_inverse
 
     @property
     def n_pairs(self) -> int:
@@ -400,6 +401,7 @@ class _TrackPairs:
         out = copy.copy(self)
         for name in ("frame", "lag", "landmark", "points", "target"):
             setattr(out, name, getattr(self, name)[keep])
+        out._inverse_cache = None
         return out
 
     def relative_imu(self, timestamps: np.ndarray, u: np.ndarray, shift: int = 1) -> np.ndarray:
@@ -415,12 +417,26 @@ class _TrackPairs:
             out[valid, j] = out[valid, j - 1] @ steps[valid + j - 1]
         return out
 
+    def _relative_inverse(self, rel_imu: np.ndarray) -> tuple[np.ndarray, bool]:
+        """(inv(imu_k_T_imu_{k+j}), gathered): at the pairs' (k, j) when there are fewer
+        pairs than (k, j) cells (gathered), else at every cell. Kept for the next call with
+        the same ``rel_imu`` (a fit that varies only cam_T_imu calls with one array; the
+        reference held keeps its id from being reused)."""
+        cached = self._inverse_cache
+        if cached is None or cached[0] is not rel_imu:
+            gathered = self.n_pairs < rel_imu.shape[0] * rel_imu.shape[1]
+            inv = se3_inverse(rel_imu[self.frame, self.lag] if gathered else rel_imu)
+            cached = self._inverse_cache = (rel_imu, inv, gathered)
+        return cached[1], cached[2]
+
     def residuals(self, rel_imu: np.ndarray, cam_T_imu: np.ndarray) -> np.ndarray:
         """(P, 4) stereo reprojection residuals (px) of the predictions."""
         imu_T_cam = se3_inverse(cam_T_imu)
+        inv_rel, gathered = self._relative_inverse(rel_imu)
         # cam_{k+j}_T_cam_k = cam_T_imu @ inv(imu_k_T_imu_{k+j}) @ imu_T_cam, for every (k, j)
-        G = cam_T_imu @ se3_inverse(rel_imu) @ imu_T_cam
-        G = G[self.frame, self.lag]
+        G = cam_T_imu @ inv_rel @ imu_T_cam
+        if not gathered:
+            G = G[self.frame, self.lag]
         q = np.matmul(G[:, :3, :3], self.points[:, :, None])[:, :, 0] + G[:, :3, 3]
         c = self.camera
         z = np.maximum(q[:, 2], 0.1)
