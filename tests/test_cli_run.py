@@ -1,5 +1,6 @@
-"""``vislam run`` and ``vislam demo`` end to end (subprocesses), plus in-process checks of
-partial runs and Ctrl-C."""
+"""``vislam run`` and ``vislam demo`` end to end: in subprocesses where the process
+matters (exit code, streams, file names, start time), else by the entry point in this
+process; plus in-process checks of partial runs and Ctrl-C."""
 
 from __future__ import annotations
 
@@ -41,15 +42,25 @@ def vislam(*args, timeout=300):
                           timeout=timeout)
 
 
+def in_process(capsys, *args):
+    """The command by its entry point in this process (the exit code it returns is the
+    process's, see __main__): the same checks as a subprocess without a Python start-up."""
+    code = main([str(a) for a in args])
+    captured = capsys.readouterr()
+    return subprocess.CompletedProcess(args, code, captured.out, captured.err)
+
+
 def _lines(path):
     return [line for line in path.read_text().splitlines() if line.strip()]
 
 
 @pytest.mark.parametrize("mode", ["localization", "mapping", "slam"])
-def test_run_writes_the_outputs_of_each_mode(tmp_path, sim, mode):
+def test_run_writes_the_outputs_of_each_mode(tmp_path, sim, mode, capsys):
+    """SLAM in a process of its own, the other modes in this one."""
     data, drive = sim
     out = tmp_path / "out"
-    proc = vislam("run", data, "--mode", mode, "--out", out)
+    args = ("run", data, "--mode", mode, "--out", out)
+    proc = vislam(*args) if mode == "slam" else in_process(capsys, *args)
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr == ""  # not a terminal: no progress bar
     assert str(out) in proc.stdout and "filter time" in proc.stdout
@@ -67,19 +78,19 @@ def test_run_writes_the_outputs_of_each_mode(tmp_path, sim, mode):
     assert err.max() < 1.0, err.max()
 
 
-def test_quiet_prints_nothing(tmp_path, sim):
+def test_quiet_prints_nothing(tmp_path, sim, capsys):
     data, _ = sim
-    proc = vislam("run", data, "--mode", "slam", "--out", tmp_path / "q", "--quiet")
+    proc = in_process(capsys, "run", data, "--mode", "slam", "--out", tmp_path / "q", "--quiet")
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == "" and proc.stderr == ""
     assert {p.name for p in (tmp_path / "q").iterdir()} == TRAJ | LANDMARKS
 
 
-def test_config_file_and_flags_reach_the_filter(tmp_path, sim):
+def test_config_file_and_flags_reach_the_filter(tmp_path, sim, capsys):
     data, _ = sim
     config = tmp_path / "filter.toml"
     config.write_text('velocity_noise_mps = 0.5\nangular_noise_radps = 0.05\nekf = "standard"\n')
-    proc = vislam("run", data, "--out", tmp_path / "o", "--quiet", "--config", config, "--angular-noise", "0.01",
+    proc = in_process(capsys, "run", data, "--out", tmp_path / "o", "--quiet", "--config", config, "--angular-noise", "0.01",
                   "--gate", "off", "--keep-all-landmarks")
     assert proc.returncode == 0, proc.stderr
     options = json.loads((tmp_path / "o" / "summary.json").read_text())["options"]
@@ -90,11 +101,11 @@ def test_config_file_and_flags_reach_the_filter(tmp_path, sim):
     assert options["pixel_noise_px"] == 2.0  # default
 
 
-def test_mapping_with_given_poses(tmp_path, sim):
+def test_mapping_with_given_poses(tmp_path, sim, capsys):
     data, drive = sim
     poses = tmp_path / "truth.kitti"
     write_kitti(poses, drive.world_T_imu)
-    proc = vislam("run", data, "--mode", "mapping", "--poses", poses, "--out", tmp_path / "m", "--quiet")
+    proc = in_process(capsys, "run", data, "--mode", "mapping", "--poses", poses, "--out", tmp_path / "m", "--quiet")
     assert proc.returncode == 0, proc.stderr
     _, est = read_tum(tmp_path / "m" / "trajectory.tum")
     np.testing.assert_allclose(est, drive.world_T_imu, atol=1e-6)
@@ -149,26 +160,42 @@ def test_an_empty_path_argument_is_a_one_line_error(tmp_path, sim, monkeypatch, 
     assert not list(cwd.iterdir()) and not (tmp_path / "o").exists()
 
 
-def test_bad_inputs_give_one_line_and_no_output(tmp_path, sim):
+def _out_of(tmp_path, name, args):
+    """(args without ``--out-override``, the output folder the case names)."""
+    out = tmp_path / f"out-{name.replace(' ', '-')}"
+    if "--out-override" in args:
+        i = args.index("--out-override")
+        out = args[i + 1]
+        args = args[:i] + args[i + 2:]
+    return args, out
+
+
+def _assert_one_line_error(name, code, stdout, stderr, needle, out, tmp_path):
+    assert code != 0, name
+    lines = stderr.splitlines()
+    assert len(lines) == 1, (name, stderr)
+    assert "Traceback" not in stderr
+    assert lines[0].startswith("vislam run: error:"), (name, lines[0])
+    assert needle in lines[0], (name, lines[0])
+    assert stdout == ""
+    if out.name != "blocker":
+        assert not out.exists(), name
+    assert (tmp_path / "blocker").read_text() == "a file, not a directory"
+
+
+def test_bad_inputs_give_one_line_and_no_output(tmp_path, sim, capsys):
+    """Each bad input by the command's entry point in this process (the exit code it
+    returns is the process's, see __main__), and one of them in a process of its own."""
     data, drive = sim
     cases = _bad_inputs(tmp_path, data, drive)
     for name, (args, needle) in cases.items():
-        out = tmp_path / f"out-{name.replace(' ', '-')}"
-        if "--out-override" in args:
-            i = args.index("--out-override")
-            out = args[i + 1]
-            args = args[:i] + args[i + 2:]
-        proc = vislam(*args, "--out", out)
-        assert proc.returncode != 0, name
-        lines = proc.stderr.splitlines()
-        assert len(lines) == 1, (name, proc.stderr)
-        assert "Traceback" not in proc.stderr
-        assert lines[0].startswith("vislam run: error:"), (name, lines[0])
-        assert needle in lines[0], (name, lines[0])
-        assert proc.stdout == ""
-        if out.name != "blocker":
-            assert not out.exists(), name
-    assert (tmp_path / "blocker").read_text() == "a file, not a directory"
+        args, out = _out_of(tmp_path, name, args)
+        code = main([str(a) for a in (*args, "--out", out)])
+        captured = capsys.readouterr()
+        _assert_one_line_error(name, code, captured.out, captured.err, needle, out, tmp_path)
+    args, out = _out_of(tmp_path, "bad npz", cases["bad npz"][0])
+    proc = vislam(*args, "--out", out)
+    _assert_one_line_error("bad npz (process)", proc.returncode, proc.stdout, proc.stderr, "bad.npz", out, tmp_path)
 
 
 def test_partial_run_writes_outputs_and_fails(tmp_path, sim, monkeypatch, capsys):
@@ -217,7 +244,7 @@ def test_ctrl_c_leaves_no_output_and_says_so(tmp_path, sim, monkeypatch, capsys)
     assert not out.exists()
 
 
-def test_demo(tmp_path):
+def test_demo(tmp_path, capsys):
     out = tmp_path / "demo"
     proc = vislam("demo", "--out", out, "--frames", 150, "--seed", 3)
     assert proc.returncode == 0, proc.stderr
@@ -231,7 +258,7 @@ def test_demo(tmp_path):
     ate = summary["ground_truth"]["ate_m"]
     assert 0 < ate["slam"] < ate["localization"]
     assert len(_lines(out / "groundtruth.tum")) == 150
-    quiet = vislam("demo", "--out", tmp_path / "q", "--frames", 60, "--quiet")
+    quiet = in_process(capsys, "demo", "--out", tmp_path / "q", "--frames", 60, "--quiet")
     assert quiet.returncode == 0 and quiet.stdout == "" and quiet.stderr == ""
 
 
@@ -275,9 +302,12 @@ def test_total_time_counts_the_command_not_what_its_process_ran_before(sim, tmp_
     exec_out, own_out = tmp_path / "exec", tmp_path / "own"
     script = f"sleep 5; exec {shlex.quote(sys.executable)} -m vislam run {shlex.quote(str(data))} " \
              f"--out {shlex.quote(str(exec_out))} --quiet"
+    # the command in a process of its own runs while the shell sleeps (it has the CPU to itself)
+    own = subprocess.Popen([sys.executable, "-m", "vislam", "run", str(data), "--out", str(own_out), "--quiet"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     subprocess.run(["sh", "-c", script], check=True, timeout=300)
-    proc = vislam("run", data, "--out", own_out, "--quiet")
-    assert proc.returncode == 0, proc.stderr
+    _, stderr = own.communicate(timeout=300)
+    assert own.returncode == 0, stderr
     after_exec = json.loads((exec_out / "summary.json").read_text())
     own = json.loads((own_out / "summary.json").read_text())
     assert after_exec["filter_seconds"] < after_exec["total_seconds"] < own["total_seconds"] + 3.0

@@ -20,6 +20,7 @@ from vislam.tools.report import NoiseLevel, ReportSettings, generate_report
 from vislam.tools.trajectory_io import write_kitti
 
 N_FRAMES = 90  # 116 m: KITTI t needs 100 m segments
+N_FRAMES_NO_GT = 40  # the dataset without ground truth: no metric needs its length
 SIM_FRAMES = 30
 SMALL = ["--sim-frames", str(SIM_FRAMES), "--noise-levels", "0.3:0.006"]
 #: SMALL as the library's settings.
@@ -40,8 +41,8 @@ def data_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
     (root / "sparse").mkdir()
     (root / "groundtruth").mkdir()
-    for seed, stem in ((0, "0100"), (1, "0101")):
-        drive = simulate_drive(SimulationOptions(n_frames=N_FRAMES, seed=seed))
+    for seed, stem, n_frames in ((0, "0100", N_FRAMES), (1, "0101", N_FRAMES_NO_GT)):
+        drive = simulate_drive(SimulationOptions(n_frames=n_frames, seed=seed))
         save_sequence(drive.sequence, root / "sparse" / f"{stem}.npz")
         if stem == "0100":
             cam_T_imu = drive.sequence.cam_T_imu
