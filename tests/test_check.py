@@ -534,6 +534,22 @@ def test_landmark_medians_match_numpy_per_group():
     np.testing.assert_allclose(med, [np.median(d[landmark == i]) for i in ids], rtol=0, atol=0)
 
 
+def test_track_pairs_group_their_landmarks_once_for_any_distances():
+    """The pairs' landmark medians, grouped once and reused, for new distances each time
+    and for a subset of the pairs (which groups its own)."""
+    from vislam.core.check import _TrackPairs
+
+    seq = simulate_drive(SIM.replace(n_frames=40)).sequence
+    pairs = _TrackPairs(seq, 3, 40.0, None, np.random.default_rng(0))
+    rng = np.random.default_rng(2)
+    for p in (pairs, pairs, pairs.subset(pairs.n_pairs // 2, rng)):
+        d = rng.exponential(3.0, p.n_pairs)
+        ids, med, inv = p.landmark_medians(d)
+        np.testing.assert_array_equal(ids[inv], p.landmark)
+        np.testing.assert_allclose(med, [np.median(d[p.landmark == i]) for i in ids], rtol=0, atol=0)
+        assert p.landmark_inliers(d, 3.0) == int(np.count_nonzero(med <= 3.0))
+
+
 def test_timestamps_in_milliseconds_are_named_and_the_rest_of_the_check_still_works():
     drive = simulate_drive(SIM)
     seq = drive.sequence

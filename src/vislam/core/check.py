@@ -381,6 +381,7 @@ class _TrackPairs:
         self.window = window
         self.n_frames = sequence.n_frames
         self._inverse_cache = None  # see _relative_inverse
+        self._groups = None  # see landmark_medians
 
     @property
     def n_pairs(self) -> int:
@@ -401,7 +402,7 @@ class _TrackPairs:
         out = copy.copy(self)
         for name in ("frame", "lag", "landmark", "points", "target"):
             setattr(out, name, getattr(self, name)[keep])
-        out._inverse_cache = None
+        out._inverse_cache = out._groups = None
         return out
 
     def relative_imu(self, timestamps: np.ndarray, u: np.ndarray, shift: int = 1) -> np.ndarray:
@@ -411,11 +412,20 @@ class _TrackPairs:
         idx = np.clip(np.arange(T - 1) + shift, 0, T - 1)
         steps = se3_exp(tau[:, None] * u[idx])  # (T-1, 4, 4) imu_k_T_imu_{k+1}
         out = np.broadcast_to(np.eye(4), (T, self.window + 1, 4, 4)).copy()
-        for j in range(1, self.window + 1):
-            # out[k, j] = out[k, j-1] @ steps[k + j - 1]
-            valid = np.arange(T - j)
-            out[valid, j] = out[valid, j - 1] @ steps[valid + j - 1]
+        for j in range(1, min(self.window, T - 1) + 1):
+            # out[k, j] = out[k, j-1] @ steps[k + j - 1] for k < T - j
+            out[:T - j, j] = out[:T - j, j - 1] @ steps[j - 1:T - 1]
         return out
+
+    def landmark_medians(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`_landmark_medians` of the pairs' landmarks, their grouping made once."""
+        if self._groups is None:
+            self._groups = _landmark_groups(self.landmark)
+        return _group_medians(self._groups, d)
+
+    def landmark_inliers(self, d: np.ndarray, px: float) -> int:
+        """How many landmarks reproject with a median left distance within ``px``."""
+        return int(np.count_nonzero(self.landmark_medians(d)[1] <= px))
 
     def _relative_inverse(self, rel_imu: np.ndarray) -> tuple[np.ndarray, bool]:
         """(inv(imu_k_T_imu_{k+j}), gathered): at the pairs' (k, j) when there are fewer
@@ -454,6 +464,28 @@ class _TrackPairs:
 def _cauchy_cost(r: np.ndarray, scale: float) -> np.ndarray:
     """Per-pair Cauchy cost of (P, 4) residuals."""
     return np.sum(np.log1p((r / scale) ** 2), axis=1)
+
+
+def _landmark_groups(landmark: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(ids, index of each entry's landmark, the two middle positions of each landmark's
+    entries once sorted by landmark)."""
+    lms, inv = np.unique(landmark, return_inverse=True)
+    counts = np.bincount(inv, minlength=lms.size)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if lms.size else counts
+    return lms, inv, starts + (counts - 1) // 2, starts + counts // 2
+
+
+def _group_medians(groups, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    lms, inv, lo, hi = groups
+    if lms.size == 0:
+        return lms, np.zeros(0), inv
+    d_sorted = d[np.lexsort((d, inv))]  # by landmark, then value
+    return lms, 0.5 * (d_sorted[lo] + d_sorted[hi]), inv
+
+
+def _landmark_medians(landmark: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ids, median of ``d`` per landmark, index of each entry's landmark)."""
+    return _group_medians(_landmark_groups(landmark), d)
 
 
 def _left_distance(r: np.ndarray) -> np.ndarray:
@@ -601,23 +633,6 @@ def _sandwich_covariance(pairs: _TrackPairs, sol, scale: float) -> np.ndarray:
         return np.full((J.shape[1], J.shape[1]), np.nan)
 
 
-def _landmark_medians(landmark: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ids, median of ``d`` per landmark, index of each entry's landmark)."""
-    lms, inv = np.unique(landmark, return_inverse=True)
-    if lms.size == 0:
-        return lms, np.zeros(0), inv
-    d_sorted = d[np.lexsort((d, inv))]  # by landmark, then value
-    counts = np.bincount(inv, minlength=lms.size)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    med = 0.5 * (d_sorted[starts + (counts - 1) // 2] + d_sorted[starts + counts // 2])
-    return lms, med, inv
-
-
-def _landmark_inliers(landmark: np.ndarray, d: np.ndarray, px: float) -> int:
-    """How many landmarks reproject with a median left distance within ``px``."""
-    return int(np.count_nonzero(_landmark_medians(landmark, d)[1] <= px))
-
-
 def _moving_landmarks(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi: np.ndarray,
                       threshold_px: float | None) -> dict[str, Any]:
     """The landmarks whose predictions (rotation ``phi``, association "next") reproject
@@ -629,7 +644,7 @@ def _moving_landmarks(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi: np.ndar
     if threshold_px is None or lms.size == 0:
         return out
     d = _left_distance(pairs.residuals(pairs.relative_imu(timestamps, u, 1), _turned(cam_T_imu, phi)))
-    lms, med, inv = _landmark_medians(pairs.landmark, d)
+    lms, med, inv = pairs.landmark_medians(d)
     bad = med > max(float(threshold_px), 4.0 * float(np.percentile(med, 25)))
     out.update(landmarks=int(bad.sum()), predictions_share=float(np.mean(bad[inv])),
                landmark_ids=lms[bad].tolist())
@@ -1246,13 +1261,14 @@ def _analyse_best_start(run: _Check) -> Analysis:
     inlier_px = opts.moving_landmark_px if opts.moving_landmark_px is not None else 12.0
     starts = [(phi0, k) for k in _scale_grid(opts.velocity_scale_range) for phi0 in _starts()]
     few = pairs.subset(opts.start_pairs, np.random.default_rng(opts.seed))  # the search: a subset suffices
-    rel_few = few.relative_imu(ts, u, 1)
+    rel_by_k = {1.0: few.relative_imu(ts, u, 1)}  # the IMU motions of each factor, for every rotation start
     costs = []
     for phi0, k in starts:
-        rel_k = rel_few if k == 1.0 else few.relative_imu(ts, _scaled(u, k), 1)
-        r0 = few.residuals(rel_k, _turned(C0, phi0))
+        if k not in rel_by_k:
+            rel_by_k[k] = few.relative_imu(ts, _scaled(u, k), 1)
+        r0 = few.residuals(rel_by_k[k], _turned(C0, phi0))
         d0 = _left_distance(r0)
-        costs.append((-_landmark_inliers(few.landmark, d0, inlier_px), -int(np.count_nonzero(d0 <= inlier_px)),
+        costs.append((-few.landmark_inliers(d0, inlier_px), -int(np.count_nonzero(d0 <= inlier_px)),
                       float(np.sum(_cauchy_cost(r0, run.scale)))))
     run.phi_start, run.k_start = starts[min(range(len(costs)), key=costs.__getitem__)]
     # the residuals the loss scale follows: the recorded data's, or at the factor found
