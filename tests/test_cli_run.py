@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import shared_file
+from conftest import HALF_SCENE, shared_file
 from vislam.cli import main
 from vislam.core.simulate import SimulationOptions, simulate_drive
 from vislam.errors import EstimationError
@@ -31,7 +31,7 @@ LANDMARKS = {"landmarks.ply", "landmarks.npz"}
 def sim(tmp_path_factory):
     """A short simulated drive saved in the dataset format, with its truth."""
     directory = tmp_path_factory.mktemp("data")
-    drive = simulate_drive(SimulationOptions(n_frames=N_FRAMES))
+    drive = simulate_drive(SimulationOptions(n_frames=N_FRAMES, **HALF_SCENE))
     path = directory / "drive.npz"
     save_sequence(drive.sequence, path)
     return path, drive

@@ -14,6 +14,8 @@ from vislam.tools.evaluation import evaluate_files
 from vislam.tools.simulate_io import write_simulated_drive
 from vislam.tools.trajectory_io import write_kitti
 
+from conftest import HALF_SCENE
+
 RUN_FILES = {"trajectory.tum", "trajectory.kitti", "trajectory.png", "summary.json", "landmarks.ply",
              "landmarks.npz"}
 EVAL_FILES = {"metrics.json", "error_over_distance.png"}
@@ -23,16 +25,16 @@ NOISE = ["--add-velocity-noise", "0.5", "--add-angular-noise", "0.05", "--veloci
          "--angular-noise", "0.05"]
 
 
-def _drive(tmp_path_factory, n_frames):
+def _drive(tmp_path_factory, n_frames, **scene):
     directory = tmp_path_factory.mktemp(f"drive{n_frames}")
-    drive = simulate_drive(SimulationOptions(n_frames=n_frames, seed=1))
+    drive = simulate_drive(SimulationOptions(n_frames=n_frames, seed=1, **scene))
     write_simulated_drive(drive, directory)
     return directory, drive
 
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
-    return _drive(tmp_path_factory, 120)
+    return _drive(tmp_path_factory, 120, **HALF_SCENE)
 
 
 @pytest.fixture(scope="module")

@@ -31,6 +31,8 @@ from vislam.tools.outputs import (
 )
 from vislam.tools.trajectory_io import read_kitti, read_tum
 
+from conftest import HALF_SCENE
+
 N_FRAMES = 120
 ALL_FILES = {TRAJECTORY_TUM, TRAJECTORY_KITTI, LANDMARKS_PLY, LANDMARKS_NPZ, FIGURE, SUMMARY}
 
@@ -46,7 +48,7 @@ REQUIRED_KEYS = {
 def drive():
     # IMU noise so that SLAM has something to correct; outliers so that some landmarks get rejected
     return simulate_drive(SimulationOptions(n_frames=N_FRAMES, velocity_noise_mps=0.3, angular_noise_radps=0.02,
-                                            outlier_fraction=0.02))
+                                            outlier_fraction=0.02, **HALF_SCENE))
 
 
 @pytest.fixture(scope="module")

@@ -19,6 +19,8 @@ from vislam.tools.dataset_io import save_sequence
 from vislam.tools.report import NoiseLevel, ReportSettings, generate_report
 from vislam.tools.trajectory_io import write_kitti
 
+from conftest import HALF_SCENE
+
 N_FRAMES = 90  # 116 m: KITTI t needs 100 m segments
 N_FRAMES_NO_GT = 40  # the dataset without ground truth: no metric needs its length
 SIM_FRAMES = 30
@@ -42,7 +44,7 @@ def data_dir(tmp_path_factory):
     (root / "sparse").mkdir()
     (root / "groundtruth").mkdir()
     for seed, stem, n_frames in ((0, "0100", N_FRAMES), (1, "0101", N_FRAMES_NO_GT)):
-        drive = simulate_drive(SimulationOptions(n_frames=n_frames, seed=seed))
+        drive = simulate_drive(SimulationOptions(n_frames=n_frames, seed=seed, **HALF_SCENE))
         save_sequence(drive.sequence, root / "sparse" / f"{stem}.npz")
         if stem == "0100":
             cam_T_imu = drive.sequence.cam_T_imu

@@ -22,6 +22,8 @@ from vislam.tools.sweep import (COLUMNS, RESULTS_FILE, SUMMARY_FIGURE, load_spec
                                 run_sweep)
 from vislam.tools.trajectory_io import write_kitti, write_tum
 
+from conftest import HALF_SCENE
+
 N_FRAMES = 40
 INJECTED_V, INJECTED_W = 0.1, 0.002
 
@@ -39,7 +41,7 @@ def data(tmp_path_factory):
     ground truth of the left camera (the layout of the shared data)."""
     root = tmp_path_factory.mktemp("sweepdata")
     for seed, stem in ((0, "a"), (1, "b")):
-        drive = simulate_drive(SimulationOptions(n_frames=N_FRAMES, seed=seed))
+        drive = simulate_drive(SimulationOptions(n_frames=N_FRAMES, seed=seed, **HALF_SCENE))
         seq = drive.sequence
         save_sequence(seq, root / f"{stem}.npz")
         if stem == "a":
