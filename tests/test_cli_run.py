@@ -90,8 +90,8 @@ def test_config_file_and_flags_reach_the_filter(tmp_path, sim, capsys):
     data, _ = sim
     config = tmp_path / "filter.toml"
     config.write_text('velocity_noise_mps = 0.5\nangular_noise_radps = 0.05\nekf = "standard"\n')
-    proc = in_process(capsys, "run", data, "--out", tmp_path / "o", "--quiet", "--config", config, "--angular-noise", "0.01",
-                  "--gate", "off", "--keep-all-landmarks")
+    proc = in_process(capsys, "run", data, "--out", tmp_path / "o", "--quiet", "--config", config,
+                      "--angular-noise", "0.01", "--gate", "off", "--keep-all-landmarks")
     assert proc.returncode == 0, proc.stderr
     options = json.loads((tmp_path / "o" / "summary.json").read_text())["options"]
     assert options["velocity_noise_mps"] == 0.5  # file
@@ -190,9 +190,8 @@ def test_bad_inputs_give_one_line_and_no_output(tmp_path, sim, capsys):
     cases = _bad_inputs(tmp_path, data, drive)
     for name, (args, needle) in cases.items():
         args, out = _out_of(tmp_path, name, args)
-        code = main([str(a) for a in (*args, "--out", out)])
-        captured = capsys.readouterr()
-        _assert_one_line_error(name, code, captured.out, captured.err, needle, out, tmp_path)
+        proc = in_process(capsys, *args, "--out", out)
+        _assert_one_line_error(name, proc.returncode, proc.stdout, proc.stderr, needle, out, tmp_path)
     args, out = _out_of(tmp_path, "bad npz", cases["bad npz"][0])
     proc = vislam(*args, "--out", out)
     _assert_one_line_error("bad npz (process)", proc.returncode, proc.stdout, proc.stderr, "bad.npz", out, tmp_path)

@@ -430,8 +430,8 @@ class _TrackPairs:
     def _relative_inverse(self, rel_imu: np.ndarray) -> tuple[np.ndarray, bool]:
         """(inv(imu_k_T_imu_{k+j}), gathered): at the pairs' (k, j) when there are fewer
         pairs than (k, j) cells (gathered), else at every cell. Kept for the next call with
-        the same ``rel_imu`` (a fit that varies only cam_T_imu calls with one array; the
-        reference held keeps its id from being reused)."""
+        the same ``rel_imu``, which callers do not change in place (a fit that varies only
+        cam_T_imu calls with one array; the reference held keeps its id from being reused)."""
         cached = self._inverse_cache
         if cached is None or cached[0] is not rel_imu:
             gathered = self.n_pairs < rel_imu.shape[0] * rel_imu.shape[1]
