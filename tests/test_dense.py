@@ -53,3 +53,9 @@ def test_singular_and_indefinite_matrices_raise_as_numpy_does(ignore):
             dense.cholesky(indefinite)
         with pytest.raises(np.linalg.LinAlgError, match="singular"):
             dense.solve_lower(np.diag([1.0, 0.0]), np.ones(2))
+
+
+def test_the_numpy_installed_takes_the_gufunc_path():
+    """The gufuncs answer as numpy.linalg on this numpy (else the module falls back, and
+    the filter is slower but the same)."""
+    assert dense._GUFUNCS is not None

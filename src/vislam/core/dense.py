@@ -7,7 +7,8 @@ functions here call the same gufuncs (``numpy.linalg._umath_linalg``) that
 so they return the same numbers bit for bit and raise the same
 :class:`numpy.linalg.LinAlgError` on a singular (not positive definite) matrix — also
 inside the filter's ``np.errstate(invalid="ignore")``. Their inputs are float64 arrays
-(the filter's); where numpy lacks the gufuncs they fall back to ``numpy.linalg``.
+(the filter's); where numpy lacks the gufuncs, or they do not answer as
+``numpy.linalg`` does on a test system at import, these fall back to ``numpy.linalg``.
 """
 
 from __future__ import annotations
@@ -17,13 +18,6 @@ from scipy.linalg.lapack import dtrtrs
 
 __all__ = ["solve", "cholesky", "solve_lower"]
 
-try:  # numpy >= 1.8 has them; private, so checked once here
-    from numpy.linalg import _umath_linalg
-
-    _SOLVE, _SOLVE1, _CHOLESKY = _umath_linalg.solve, _umath_linalg.solve1, _umath_linalg.cholesky_lo
-except (ImportError, AttributeError):  # pragma: no cover - another numpy
-    _SOLVE = None
-
 
 def _raise_singular(err, flag):
     raise np.linalg.LinAlgError("Singular matrix")
@@ -31,6 +25,27 @@ def _raise_singular(err, flag):
 
 def _raise_not_positive_definite(err, flag):
     raise np.linalg.LinAlgError("Matrix is not positive definite")
+
+
+def _private_gufuncs():
+    """numpy's (solve, solve1, cholesky_lo) gufuncs, or None when this numpy lacks them or
+    they do not give numpy.linalg's answers on a small system (they are private: checked
+    once, here)."""
+    try:
+        from numpy.linalg import _umath_linalg
+
+        gufuncs = _umath_linalg.solve, _umath_linalg.solve1, _umath_linalg.cholesky_lo
+        a, b = np.array([[4.0, 1.0], [1.0, 3.0]]), np.array([[1.0], [2.0]])
+        ok = (np.array_equal(gufuncs[0](a, b, signature="dd->d"), np.linalg.solve(a, b))
+              and np.array_equal(gufuncs[1](a, b[:, 0], signature="dd->d"), np.linalg.solve(a, b[:, 0]))
+              and np.array_equal(gufuncs[2](a, signature="d->d"), np.linalg.cholesky(a)))
+    except Exception:  # pragma: no cover - another numpy
+        return None
+    return gufuncs if ok else None
+
+
+_GUFUNCS = _private_gufuncs()
+_SOLVE, _SOLVE1, _CHOLESKY = _GUFUNCS or (None, None, None)
 
 
 def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
