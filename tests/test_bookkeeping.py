@@ -17,6 +17,8 @@ from vislam.core.results import LANDMARK_OK, LANDMARK_REJECTED, RunStats
 from vislam.core.sequence import StereoObservations
 from vislam.core.simulate import SimulationOptions, simulate_drive
 
+from conftest import HALF_SCENE
+
 NOISY_IMU = dict(velocity_noise_mps=0.5, angular_noise_radps=0.05)
 
 
@@ -131,7 +133,7 @@ def test_map_builder_numbers_tracks_by_first_frame_across_chunks(monkeypatch):
 @pytest.fixture(scope="module")
 def drive():
     return simulate_drive(SimulationOptions(seed=1, n_frames=120, moving_fraction=0.1, outlier_fraction=0.02,
-                                            **NOISY_IMU))
+                                            **NOISY_IMU, **HALF_SCENE))
 
 
 @pytest.mark.parametrize("mode,extra", [
