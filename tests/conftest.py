@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,17 @@ SHARED_DATA = Path(os.environ.get("VISLAM_SHARED_DATA", REPO_ROOT.parent / "shar
 #: messages and options, which do not need a dense scene: each filter run costs half.
 HALF_SCENE = dict(facade_density_per_m=0.7, pole_density_per_m=0.02, parked_car_density_per_m=0.05,
                   ground_density_per_m=0.15, background_density_per_m2=0.01)
+
+
+def in_process(capsys, *args) -> subprocess.CompletedProcess:
+    """``vislam ARGS`` by its entry point in this process, as a CompletedProcess (the exit
+    code it returns is the process's, see __main__; stdout and stderr from ``capsys``):
+    the checks of a subprocess without its Python start-up."""
+    from vislam.cli import main
+
+    code = main([str(a) for a in args])
+    captured = capsys.readouterr()
+    return subprocess.CompletedProcess(args, code, captured.out, captured.err)
 
 
 def shared_file(relative: str) -> Path:

@@ -524,12 +524,12 @@ def test_landmarks_on_moving_vehicles_are_left_out_of_the_convention_checks():
 
 
 def test_landmark_medians_match_numpy_per_group():
-    from vislam.core.check import _landmark_medians
+    from vislam.core.check import _group_medians, _landmark_groups
 
     rng = np.random.default_rng(1)
     landmark = rng.integers(0, 40, 700)
     d = rng.exponential(3.0, 700)
-    ids, med, inv = _landmark_medians(landmark, d)
+    ids, med, inv = _group_medians(_landmark_groups(landmark), d)
     np.testing.assert_array_equal(ids[inv], landmark)
     np.testing.assert_allclose(med, [np.median(d[landmark == i]) for i in ids], rtol=0, atol=0)
 

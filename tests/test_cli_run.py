@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import HALF_SCENE, shared_file
+from conftest import HALF_SCENE, in_process, shared_file
 from vislam.cli import main
 from vislam.core.simulate import SimulationOptions, simulate_drive
 from vislam.errors import EstimationError
@@ -40,14 +40,6 @@ def sim(tmp_path_factory):
 def vislam(*args, timeout=300):
     return subprocess.run([sys.executable, "-m", "vislam", *map(str, args)], capture_output=True, text=True,
                           timeout=timeout)
-
-
-def in_process(capsys, *args):
-    """The command by its entry point in this process (the exit code it returns is the
-    process's, see __main__): the same checks as a subprocess without a Python start-up."""
-    code = main([str(a) for a in args])
-    captured = capsys.readouterr()
-    return subprocess.CompletedProcess(args, code, captured.out, captured.err)
 
 
 def _lines(path):

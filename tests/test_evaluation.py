@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO_ROOT, drifting_estimate, shared_file
+from conftest import REPO_ROOT, drifting_estimate, in_process, shared_file
 from vislam.core.lie import make_pose, se3_exp, se3_inverse, so3_exp
 from vislam.errors import ConfigError, GroundTruthError
 from vislam.tools.evaluation import (
@@ -471,31 +471,27 @@ def _assert_one_line_error(proc, *fragments):
 def test_cli_bad_inputs(tmp_path, cli_files, capsys):
     """The first case in a process of its own, the others by the entry point in this
     process (the exit code it returns is the process's, see __main__)."""
-    from vislam.cli import main
-
-    def in_process(*args):
-        code = main(["eval", *args])
-        captured = capsys.readouterr()
-        return subprocess.CompletedProcess(args, code, captured.out, captured.err)
+    def in_process_eval(*args):
+        return in_process(capsys, "eval", *args)
 
     gt_file, est_file, _, _ = cli_files
     out = tmp_path / "out"
     missing = tmp_path / "missing.txt"
     _assert_one_line_error(run_cli(str(est_file), str(missing), "--out", str(out)), str(missing))
-    _assert_one_line_error(in_process(str(missing), str(gt_file), "--out", str(out)), str(missing))
+    _assert_one_line_error(in_process_eval(str(missing), str(gt_file), "--out", str(out)), str(missing))
     bad = tmp_path / "bad.txt"
     bad.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 zero 0 0 1 0\n")
-    _assert_one_line_error(in_process(str(est_file), str(bad), "--out", str(out)), str(bad), "line 2")
-    _assert_one_line_error(in_process(str(est_file), str(gt_file), "--out", str(out), "--gt-frame", "cam"),
+    _assert_one_line_error(in_process_eval(str(est_file), str(bad), "--out", str(out)), str(bad), "line 2")
+    _assert_one_line_error(in_process_eval(str(est_file), str(gt_file), "--out", str(out), "--gt-frame", "cam"),
                            "--dataset")
-    _assert_one_line_error(in_process(str(est_file), str(gt_file), "--out", str(out), "--dataset",
+    _assert_one_line_error(in_process_eval(str(est_file), str(gt_file), "--out", str(out), "--dataset",
                                       str(tmp_path / "nope.npz")), "nope.npz")
-    _assert_one_line_error(in_process(str(est_file), str(gt_file), "--out", str(out), "--gt-format", "tum"),
+    _assert_one_line_error(in_process_eval(str(est_file), str(gt_file), "--out", str(out), "--gt-format", "tum"),
                            str(gt_file))
     assert not out.exists()  # nothing half-written
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    _assert_one_line_error(in_process(str(est_file), str(gt_file), "--out", str(blocker)), str(blocker))
+    _assert_one_line_error(in_process_eval(str(est_file), str(gt_file), "--out", str(blocker)), str(blocker))
 
 
 # ----------------------------------------------------------------------------- (e) shared data

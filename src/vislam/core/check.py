@@ -417,11 +417,17 @@ class _TrackPairs:
             out[:T - j, j] = out[:T - j, j - 1] @ steps[j - 1:T - 1]
         return out
 
-    def landmark_medians(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:func:`_landmark_medians` of the pairs' landmarks, their grouping made once."""
+    @property
+    def groups(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`_landmark_groups` of the pairs' landmarks (ids, each pair's index into
+        them, ...), made once."""
         if self._groups is None:
             self._groups = _landmark_groups(self.landmark)
-        return _group_medians(self._groups, d)
+        return self._groups
+
+    def landmark_medians(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`_group_medians` of ``d`` (one value per pair) over the pairs' landmarks."""
+        return _group_medians(self.groups, d)
 
     def landmark_inliers(self, d: np.ndarray, px: float) -> int:
         """How many landmarks reproject with a median left distance within ``px``."""
@@ -476,16 +482,13 @@ def _landmark_groups(landmark: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def _group_medians(groups, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ids, median of ``d`` per landmark, index of each entry's landmark) for the
+    :func:`_landmark_groups` of the entries' landmarks."""
     lms, inv, lo, hi = groups
     if lms.size == 0:
         return lms, np.zeros(0), inv
     d_sorted = d[np.lexsort((d, inv))]  # by landmark, then value
     return lms, 0.5 * (d_sorted[lo] + d_sorted[hi]), inv
-
-
-def _landmark_medians(landmark: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ids, median of ``d`` per landmark, index of each entry's landmark)."""
-    return _group_medians(_landmark_groups(landmark), d)
 
 
 def _left_distance(r: np.ndarray) -> np.ndarray:
@@ -638,7 +641,7 @@ def _moving_landmarks(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi: np.ndar
     """The landmarks whose predictions (rotation ``phi``, association "next") reproject
     with a median left-image distance above ``threshold_px`` and above 4x the first
     quartile of the landmarks' medians (see CheckOptions.moving_landmark_px)."""
-    lms = np.unique(pairs.landmark)
+    lms = pairs.groups[0]
     out: dict[str, Any] = {"landmarks": 0, "of_landmarks": int(lms.size), "predictions_share": 0.0,
                            "landmark_ids": []}
     if threshold_px is None or lms.size == 0:
@@ -754,7 +757,7 @@ def _imu_camera_translation(pairs: _TrackPairs, timestamps, u, cam_T_imu, phi, g
                   else "prefer the recorded one")
         return _swapped_rig(est, rig, C0, ev.se3d, f"the tracks {tracks}: z = {ev.z_swap:.1f}; free estimate "
                                                     f"{_fmt_vec(ev.t_free, '.2f')} {ev.se_txt}")
-    return _translation_finding(est, ev, rig, C0, int(np.unique(pairs.landmark).size), opts)
+    return _translation_finding(est, ev, rig, C0, int(pairs.groups[0].size), opts)
 
 
 def _translation_evidence(pairs: _TrackPairs, rel: np.ndarray, C0: np.ndarray, phi, axes, scale: float,
@@ -1720,7 +1723,7 @@ def _time_offset(pairs: _TrackPairs, ts, u, C0, x, shift: int, dt: float, scale:
     ub = _debiased(u, x[3:])
     C = _turned(C0, x[:3])
     grid = np.linspace(-dt, dt, 11)
-    _, inv = np.unique(pairs.landmark, return_inverse=True)
+    inv = pairs.groups[1]
     per = []
     for delta in grid:
         uu = _fourier_shift(ub, float(delta) / dt)
