@@ -18,6 +18,7 @@ window) and saved atomically (:func:`vislam.tools.atomic.atomic_path`).
 
 from __future__ import annotations
 
+import textwrap
 import warnings
 
 from dataclasses import dataclass
@@ -73,6 +74,10 @@ def _outside(xy: np.ndarray, xlim, ylim) -> np.ndarray:
     return ~(finite & inside)
 
 
+#: Characters of a subtitle line (9 pt) before it wraps: what fits the 8 in wide map figures.
+SUBTITLE_CHARS = 100
+
+
 def _label_map_axes(fig, ax, title: str, subtitle: str | None) -> None:
     """Axis labels in metres, grid, and the title (with the subtitle under it, smaller)."""
     ax.set_xlabel("x [m]")
@@ -80,7 +85,9 @@ def _label_map_axes(fig, ax, title: str, subtitle: str | None) -> None:
     ax.grid(True, lw=0.4, alpha=0.5)
     ax.set_axisbelow(True)
     if subtitle:
-        ax.set_title(subtitle, fontsize=9, color="0.3")
+        # each line wrapped to the figure's width (a line of five methods' ATEs was cut off at both sides)
+        lines = [textwrap.fill(line, SUBTITLE_CHARS, break_long_words=False) for line in subtitle.split("\n")]
+        ax.set_title("\n".join(lines), fontsize=9, color="0.3")
         fig.suptitle(title, fontsize=13)
     else:
         ax.set_title(title, fontsize=13)
