@@ -11,12 +11,16 @@ the drive is run ``--repeat`` times; the best run's per-frame mean of every step
 printed with its share of the run (nested steps are included in their parents; the
 line "every linearization" adds up the linearizations of "linearize + NIS" and those
 of the iterated update).
-Dense files are run with the filter told their IMU noise (0.5 m/s, 0.05 rad/s).
+Dense files are run with the filter told their IMU noise (0.5 m/s, 0.05 rad/s). The
+filter takes the compiled kernels where the tree has them (vislam.core.kernels), the
+numpy reference with ``--numpy``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import inspect
 import time
 from collections import defaultdict
 
@@ -26,22 +30,32 @@ from vislam.core.options import FilterOptions
 from vislam.core.stalls import StallRemapBuffer
 from vislam.tools.dataset_io import load_sequence
 
+try:  # the per-frame arithmetic's two paths (trees before vislam.core.kernels have neither)
+    from vislam.core import kernels
+except ImportError:  # pragma: no cover - older trees
+    kernels = None
+
 TOTALS: dict[str, float] = defaultdict(float)
 CALLS: dict[str, int] = defaultdict(int)
 
-#: (label, owner, attribute): the steps timed, in the order printed (indented: inside the one above)
+#: The arithmetic of a frame's steps: the compiled KernelOps and the numpy NumpyOps (timed
+#: under the same labels: a run takes one of them), or, in older trees, the updaters' functions.
+_OPS = (kernels.KernelOps, kernels.NumpyOps) if kernels is not None else (filters,)
+
+#: (label, owner(s), attribute or attributes): the steps timed, in the order printed (indented: inside the one above)
 STEPS = [
     ("stall buffer (push/release)", StallRemapBuffer, "push"),
     ("prediction", filters.SlamFilter, "predict"),
     ("update (steps 2-7)", filters.SlamFilter, "_update_frame"),
     ("  select (repeats, rejected)", filters.SlamFilter, "_select"),
     ("  update of live landmarks", filters.SlamFilter, "_update_live"),
-    ("    linearize + NIS (Jacobians, gating)", filters, "slam_predict_nis"),
-    ("    (every linearization: here and iterating)", updaters, "_linearize"),
-    ("    drift-test model", filters, "conditional_residual_model"),
+    ("    linearize + NIS (Jacobians, gating)", _OPS, ("predict_nis", "slam_predict_nis")),
+    ("    (every linearization: here and iterating)", _OPS if kernels is not None else (updaters,),
+     ("linearize", "_linearize")),
+    ("    drift-test model", _OPS, ("residual_model", "conditional_residual_model")),
     ("    iterated update", filters, "slam_update_iterated"),
-    ("      EKF update (gain, covariance)", filters, "slam_update"),
-    ("      iteration decision (step size)", updaters, "_step_size"),
+    ("      EKF update (gain, covariance)", _OPS, ("update", "slam_update")),
+    ("      iteration decision (step size)", _OPS if kernels is not None else (updaters,), ("step_size", "_step_size")),
     ("    drift test", filters.SlamFilter, "_drift_test"),
     ("    Schmidt update (young landmarks)", filters, "schmidt_update"),
     ("  reject", filters.SlamFilter, "_reject"),
@@ -72,21 +86,31 @@ def breakdown(steps, mode: str, title: str, description: str, counted: tuple[str
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("data")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--numpy", action="store_true", help="the numpy reference path instead of the compiled kernels "
+                    "(vislam.core.kernels)")
     args = ap.parse_args(argv)
     seq = load_sequence(args.data)
     kw = dict(velocity_noise_mps=0.5, angular_noise_radps=0.05) if "/dense/" in args.data else {}
     present = []
-    for label, owner, attrs in steps:
-        attr = next((a for a in ((attrs,) if isinstance(attrs, str) else attrs) if hasattr(owner, a)), None)
-        if attr is not None:
-            setattr(owner, attr, _timed(label, getattr(owner, attr)))
-            present.append(label)
+    for label, owners, attrs in steps:
+        for owner in owners if isinstance(owners, tuple) else (owners,):
+            attr = next((a for a in ((attrs,) if isinstance(attrs, str) else attrs) if hasattr(owner, a)), None)
+            if attr is None:
+                continue
+            raw = inspect.getattr_static(owner, attr)
+            timed = _timed(label, getattr(owner, attr))
+            # a class's staticmethod stays one (an instance of NumpyOps or KernelOps calls it)
+            setattr(owner, attr, staticmethod(timed) if isinstance(raw, staticmethod) else timed)
+            if label not in present:
+                present.append(label)
     best = None
     for _ in range(args.repeat):
+        use = kernels.use_kernels(not args.numpy) if kernels is not None else contextlib.nullcontext()
         TOTALS.clear()
         CALLS.clear()
         c0 = time.process_time()
-        run(seq, mode, FilterOptions(**kw))
+        with use:
+            run(seq, mode, FilterOptions(**kw))
         cpu = time.process_time() - c0
         if best is None or cpu < best[0]:
             best = (cpu, dict(TOTALS), dict(CALLS))

@@ -190,19 +190,22 @@ def test_bad_inputs_give_one_line_and_no_output(tmp_path, sim, capsys):
 
 
 def test_partial_run_writes_outputs_and_fails(tmp_path, sim, monkeypatch, capsys):
-    from vislam.core import filters
+    from vislam.core import kernels, updaters
 
     data, _ = sim
-    real_update = filters.slam_update
     calls = {"n": 0}
 
-    def failing_update(*args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] >= 50:
-            raise EstimationError("simulated divergence")
-        return real_update(*args, **kwargs)
+    def failing(real_update):
+        def failing_update(*args, **kwargs):
+            calls["n"] += 1
+            if calls["n"] >= 50:
+                raise EstimationError("simulated divergence")
+            return real_update(*args, **kwargs)
+        return failing_update
 
-    monkeypatch.setattr(filters, "slam_update", failing_update)
+    # the update of either arithmetic (compiled kernels or the numpy reference)
+    monkeypatch.setattr(kernels.KernelOps, "update", failing(kernels.KernelOps.update))
+    monkeypatch.setattr(updaters, "slam_update", failing(updaters.slam_update))
     out = tmp_path / "partial"
     code = main(["run", str(data), "--out", str(out), "--quiet"])
     captured = capsys.readouterr()

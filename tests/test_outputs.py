@@ -278,18 +278,21 @@ def test_unwritable_destination_is_an_output_error(tmp_path):
 
 def test_partial_results_are_written_and_flagged(tmp_path, drive, filter_options, monkeypatch):
     fail_at = 70
-    from vislam.core import filters
+    from vislam.core import kernels, updaters
 
-    real_update = filters.slam_update
     calls = {"n": 0}
 
-    def failing_update(state, *args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] >= fail_at:
-            raise EstimationError(f"simulated divergence at update {calls['n']}")
-        return real_update(state, *args, **kwargs)
+    def failing(real_update):
+        def failing_update(*args, **kwargs):
+            calls["n"] += 1
+            if calls["n"] >= fail_at:
+                raise EstimationError(f"simulated divergence at update {calls['n']}")
+            return real_update(*args, **kwargs)
+        return failing_update
 
-    monkeypatch.setattr(filters, "slam_update", failing_update)
+    # the update of either arithmetic (compiled kernels or the numpy reference)
+    monkeypatch.setattr(kernels.KernelOps, "update", failing(kernels.KernelOps.update))
+    monkeypatch.setattr(updaters, "slam_update", failing(updaters.slam_update))
     result = run(drive.sequence, "slam", filter_options)
     assert result.partial and "simulated divergence" in result.error
     done = result.stats.frames_processed

@@ -53,7 +53,7 @@ from vislam.core.contract import (
 from vislam.core.contract import checked_dt as _check_dt
 from vislam.core.contract import checked_observations as _observations
 from vislam.core.contract import twist as _twist
-from vislam.core import dense
+from vislam.core import kernels
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, admitted_count, in_sorted
 from vislam.core.lie import se3_adjoint, se3_exp, se3_inverse
 from vislam.core.options import FilterOptions
@@ -66,16 +66,13 @@ from vislam.core.state import SlamState
 from vislam.core.updaters import (
     FirstStepTest,
     StereoModel,
-    conditional_residual_model,
     initialization_guard,
     mapping_initialize,
     mapping_update,
     schmidt_update,
     slam_initialize_landmarks,
     slam_predict_nis,
-    slam_update,
     slam_update_iterated,
-    slam_update_reference,
     static_consistency_nis,
 )
 from vislam.errors import ConfigError, EstimationError, GeometryError
@@ -499,7 +496,6 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         self._first_step_test = FirstStepTest()  # whether the iterated update's first-step test pays
         self._velocity_var = opts.landmark_velocity_std_mps**2
         self._accel_var = opts.landmark_acceleration_std_mps2**2
-        self._update = slam_update_reference if reference else slam_update
         #: The IMU-error state's model (FilterOptions.imu_bias_sigma_*), or None (off).
         self._imu_bias_model = ImuBias(opts.imu_bias_sigma, opts.imu_bias_time_constant_s) \
             if opts.imu_bias_enabled else None
@@ -524,6 +520,9 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         # diagnostics: failed, innovation_hook, observations_of_rejected, update_counts and,
         # with the IMU-error state, imu_bias_log (see vislam.core.contract.FilterDiagnostics)
         self._init_history(bias_log=self._imu_bias_model is not None)
+        #: The per-frame arithmetic: compiled kernels or the numpy reference (vislam.core.kernels).
+        self._ops = kernels.ops_for(self._state, reference, drift=self._drift_gate < np.inf)
+        self._update = self._ops.update
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
         self._stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames, calibration.camera) \
             if opts.remaps_stalled_tracks else None
@@ -657,11 +656,17 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         if bias is not None:
             u = u - self._state.imu_bias  # u_meas − b̂
             D = bias_twist_jacobian(self._state.imu_T_world, self.options.velocity_frame)
-        u, du = prediction_twist(u, self._state.imu_T_world, self.options.velocity_frame, self._attitude_jacobian)
+        eps = self._last_correction if self._oc else None
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            predict_state(self._state, tau, u, self._W, self._last_correction if self._oc else None, du, bias, D)
-            if self._motion:
-                self._state.predict_landmarks(tau, self._accel_var)
+            if bias is None and not self._motion:
+                self._ops.predict(self._state, tau, u, self._W, eps, self.options.velocity_frame,
+                                  self._attitude_jacobian)
+            else:
+                u, du = prediction_twist(u, self._state.imu_T_world, self.options.velocity_frame,
+                                         self._attitude_jacobian)
+                predict_state(self._state, tau, u, self._W, eps, du, bias, D)
+                if self._motion:
+                    self._state.predict_landmarks(tau, self._accel_var)
         self._last_correction = np.zeros(6)  # used once: the next correction comes with the next update
         self._tau2_sum += tau * tau
 
@@ -737,22 +742,22 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
 
         then the innovation drift test and the Schmidt-Kalman probation of young
         landmarks. Returns (pose correction ε, accepted mask, NIS per observation)."""
-        opts, state, tracks = self.options, self._state, self._tracks
+        opts, state, tracks, ops = self.options, self._state, self._tracks, self._ops
         V = self._V
         drift = self._drift_gate < np.inf
-        r, Hp, Hl, in_front, nis, blocks = slam_predict_nis(state, self._model, slots, z, V, N_pose)
+        r, Hp, Hl, in_front, nis, blocks = ops.predict_nis(state, self._model, slots, z, V, N_pose)
         if self.diagnostics.innovation_hook is not None:
             self.diagnostics.innovation_hook(r, Hp, Hl, blocks, V, in_front, nis)
         ok = in_front & (nis <= self._gate)
         young = tracks["nobs"][rows] <= opts.probation_frames  # init counts as 1
         joint = ok & ~young
         if drift and ok.any():
-            Ht, Lt = conditional_residual_model(blocks, Hp, Hl, V)
+            Ht, Lt = ops.residual_model(blocks, Hp, Hl, V)
         if self._iterations > 1 and joint.any():
             correction = slam_update_iterated(state, self._model, slots[joint], z[joint], V, N_pose,
                                               self._iterations, self._update, opts.update_iteration_tolerance,
                                               self.diagnostics.update_counts, (r[joint], Hp[joint], Hl[joint]),
-                                              self._first_step_test)
+                                              self._first_step_test, ops)
         else:
             correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
         if drift and ok.any():
@@ -770,12 +775,10 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         a point on a moving vehicle drifts one way. Returns ``ok`` without the movers
         (they are rejected at once by :meth:`_reject`)."""
         tracks = self._tracks
-        w = dense.solve(Lt, (r - Ht @ correction)[:, :, None])[:, :, 0]
-        drift_sum, drift_n = tracks["drift_sum"], tracks["drift_n"]
-        drift_sum[rows] += np.where(ok[:, None], w, 0.0)
-        drift_n[rows] += ok
-        stat = np.einsum("ki,ki->k", drift_sum[rows], drift_sum[rows]) / np.maximum(drift_n[rows], 1)
-        moving = ok & (drift_n[rows] >= 2) & (stat > self._drift_gate)
+        # drift_sum[row] += w for the accepted ones (drift_n[row] += 1); moving: accepted,
+        # seen twice and |drift_sum|² / drift_n beyond the gate
+        moving = self._ops.drift_sums(Lt, Ht, r, correction, ok, rows, tracks["drift_sum"], tracks["drift_n"],
+                                      self._drift_gate)
         if moving.any():
             self.stats.landmarks_moving += int(moving.sum())
             ok = ok & ~moving
@@ -819,9 +822,10 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
 
     def _check_health(self, t: int) -> None:
         """Step 7: the state and Σ must stay finite and Σ's diagonal non-negative."""
-        if not self._state.is_finite():
+        status = self._ops.health(self._state)
+        if status == 1:
             raise EstimationError(f"non-finite state or covariance at frame {t}", frame=t)
-        if (np.diagonal(self._state.cov) < -1e-9).any():
+        if status == 2:
             raise EstimationError(f"covariance lost positive semi-definiteness at frame {t}", frame=t)
 
     def _record(self, stats: FrameStats) -> None:

@@ -75,6 +75,11 @@ class SlamState:
     #: Factor by which the covariance buffer grows when it is full.
     GROWTH = 1.25
 
+    #: The compiled kernels (``vislam.core._ekf``) that :meth:`remove_slots` and
+    #: :meth:`landmark_marginals` use, set by :func:`vislam.core.kernels.ops_for`; None:
+    #: numpy (the same numbers: the compaction moves entries, the marginals agree to rounding).
+    kernels = None
+
     def __init__(self, imu_T_world: np.ndarray, pose_covariance: np.ndarray, capacity_landmarks: int = 64,
                  lm_dim: int = LM_DIM, inverse_depth: bool = False, bias_covariance: np.ndarray | None = None):
         if lm_dim not in (3, 6):
@@ -217,8 +222,22 @@ class SlamState:
         keep_slot = np.ones(self.n_landmarks, dtype=bool)
         keep_slot[slots] = False
         keep_rows = np.concatenate([np.arange(self.core_dim), self.landmark_rows(np.nonzero(keep_slot)[0]).ravel()])
-        m = keep_rows.size
         n = self.dim
+        if self.kernels is not None:
+            self.kernels.compact(self._buffer, n, self.capacity, keep_rows)  # Σ' = Σ[keep, keep] in place
+        else:
+            self._compact(keep_rows, n)
+        self.landmark_ids = self.landmark_ids[keep_slot]
+        self.lm_mean = self.lm_mean[keep_slot]
+        self.world_T_anchor = self.world_T_anchor[keep_slot]
+        self.v_lm_in_world = self.v_lm_in_world[keep_slot]
+        self.lm_null = self.lm_null[keep_slot]
+        self.n_landmarks = int(keep_slot.sum())
+        self._reindex()
+
+    def _compact(self, keep_rows: np.ndarray, n: int) -> None:
+        """Σ' = Σ[keep_rows, keep_rows] in place, with numpy."""
+        m = keep_rows.size
         # Compact in place, Σ' = Σ[keep, keep]: the kept rows form a few runs of consecutive
         # rows (a frame removes a few landmarks), each moved up as one block, then the same
         # for the columns — a few block copies instead of an m² fancy-index gather (3x
@@ -233,13 +252,6 @@ class SlamState:
         for s, e, src in runs:
             if src != s:
                 buf[:m, s:e] = buf[:m, src:src + e - s]
-        self.landmark_ids = self.landmark_ids[keep_slot]
-        self.lm_mean = self.lm_mean[keep_slot]
-        self.world_T_anchor = self.world_T_anchor[keep_slot]
-        self.v_lm_in_world = self.v_lm_in_world[keep_slot]
-        self.lm_null = self.lm_null[keep_slot]
-        self.n_landmarks = int(keep_slot.sum())
-        self._reindex()
 
     @property
     def p_lm_in_world(self) -> np.ndarray:
@@ -260,6 +272,12 @@ class SlamState:
         ``slots``: :attr:`p_lm_in_world` of those slots and, with inverse depth,
         J Σ_λ Jᵀ with J = dp/dλ at the mean — one conversion of those slots only."""
         slots = np.asarray(slots, dtype=np.int64)
+        if self.kernels is not None and self.lm_dim == 3:
+            k = slots.size
+            p, cov = np.empty((k, 3)), np.empty((k, 3, 3))
+            self.kernels.marginals(self.lm_mean, self.world_T_anchor if self.inverse_depth else None, self._buffer,
+                                   self.dim, self.capacity, self.core_dim, np.ascontiguousarray(slots), p, cov)
+            return p, cov
         cov = self.param_cov(slots)
         if not self.inverse_depth:
             return self.lm_mean[slots], cov

@@ -59,8 +59,8 @@ class StereoModel:
 
     def __init__(self, camera: StereoCamera, cam_T_imu: np.ndarray):
         self.camera = camera
-        self.M = camera.M
-        self.cam_T_imu = np.asarray(cam_T_imu, dtype=np.float64)
+        self.M = np.ascontiguousarray(camera.M, dtype=np.float64)
+        self.cam_T_imu = np.ascontiguousarray(cam_T_imu, dtype=np.float64)  # C order: the compiled kernels read it
         # the exact matrix inverse: a recorded cam_T_imu is rigid only to ~1e-7, and the
         # initialization must invert exactly what the observation model applies
         self.imu_T_cam = np.linalg.inv(self.cam_T_imu)
@@ -445,15 +445,16 @@ def _restore_prior(state: SlamState, mu0, b0, lm0, v0, P0, factors) -> None:
 
 
 def _next_step_size(state: SlamState, slots: np.ndarray, factors: dict, r: np.ndarray, r_prev: np.ndarray,
-                    prev_step: float | None, tolerance: float) -> float | None:
+                    prev_step: float | None, tolerance: float, ops) -> float | None:
     """The adaptive iterated update's step x_{i+1} − x_i ≈ K_{i−1} (r̃_i − r̃_{i−1}) in σ,
     or None when the iteration stops: converged (below ``tolerance``) or not contracting
-    (larger than ``prev_step``, the step before; the first, x_1 − x_0 = K_0 r_0, when None)."""
-    step = _step_size(state, slots, gain_times(factors, r - r_prev))
+    (larger than ``prev_step``, the step before; the first, x_1 − x_0 = K_0 r_0, when None).
+    ``ops``: the arithmetic of :func:`slam_update_iterated`."""
+    step = ops.step_size(state, slots, ops.gain_times(factors, r - r_prev))
     if step < tolerance:
         return None  # converged: the re-linearization would move the estimate by a negligible step
     if prev_step is None:  # the size of the step already taken, x_1 − x_0 = K_0 r_0 (the update's own K r)
-        prev_step = _step_size(state, slots, factors["dx"] if "dx" in factors else gain_times(factors, r_prev))
+        prev_step = ops.step_size(state, slots, factors["dx"] if "dx" in factors else ops.gain_times(factors, r_prev))
     if step > prev_step:
         return None  # not contracting: Gauss-Newton would move away; keep the last iterate
     return step
@@ -462,7 +463,7 @@ def _next_step_size(state: SlamState, slots: np.ndarray, factors: dict, r: np.nd
 def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray, z: np.ndarray, V: np.ndarray,
                          N_pose: np.ndarray | None, iterations: int, update=None, tolerance: float = 0.0,
                          counts: list | None = None, first: tuple | None = None,
-                         first_step_test: FirstStepTest | None = None) -> np.ndarray:
+                         first_step_test: FirstStepTest | None = None, ops=None) -> np.ndarray:
     """Iterated EKF update (Gauss-Newton on the frame's observations) in place.
 
     Re-linearizes at the updated estimate x_i and redoes the update from the prior x₀, Σ₀::
@@ -488,15 +489,17 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
     before any re-linearization (the same decision, cheaper). ``counts``: a list that
     receives the number of updates done. ``first``: (r, H_pose, H_lm) of these observations
     at the prior, when the caller has them already. ``first_step_test``: the caller's
-    :class:`FirstStepTest` (whether that first-step test pays).
+    :class:`FirstStepTest` (whether that first-step test pays). ``ops``: the arithmetic
+    (:class:`vislam.core.kernels.NumpyOps`, the default, or the compiled
+    :class:`~vislam.core.kernels.KernelOps`); ``update`` defaults to its ``update``.
     Returns the total pose correction ε, μ = exp(ε) μ₀.
     """
-    update = update or slam_update
+    ops = ops or _numpy_ops()
+    update = update or ops.update
     first_step_test = first_step_test or FirstStepTest()  # without one: always test
-    mu0 = state.imu_T_world.copy()
-    b0 = state.imu_bias.copy()  # the IMU-error state (observations do not depend on it)
-    lm0 = state.lm_mean.copy()
-    v0 = state.v_lm_in_world.copy()
+    # the prior's means (the IMU-error state b̂₀ too: observations do not depend on it)
+    prior = mu0, b0, lm0, v0 = (state.imu_T_world.copy(), state.imu_bias.copy(), state.lm_mean.copy(),
+                                state.v_lm_in_world.copy())
     factors = {} if tolerance > 0 else None
     # the prior covariance: kept, or (adaptive) restored from the gain's factors only when
     # iterating, Σ₀ = Σ + Bᵀ B, so that a frame that needs one update copies nothing
@@ -513,29 +516,36 @@ def slam_update_iterated(state: SlamState, model: StereoModel, slots: np.ndarray
             # it whatever the re-linearization says: decide that before paying for it (the
             # same decision and the same state; on the sparse files most frames stop here,
             # on the dense ones almost none, where the test is skipped: FirstStepTest).
-            first_dx = factors["dx"] if "dx" in factors else gain_times(factors, r_prev)
-            prev_step = _step_size(state, slots, first_dx)
+            first_dx = factors["dx"] if "dx" in factors else ops.gain_times(factors, r_prev)
+            prev_step = ops.step_size(state, slots, first_dx)
             first_step_test.record(prev_step < tolerance)
             if prev_step < tolerance:
                 break
-            r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
-        else:
-            r, Hp, Hl, in_front = _linearize(state, model, slots, z, N_pose)
+            r, Hp, Hl, in_front = ops.linearize(state, model, slots, z, N_pose, prior)
+        else:  # (from the second iteration on, r is the residual z − h(x_i) − H_i (x₀ ⊟ x_i))
+            r, Hp, Hl, in_front = ops.linearize(state, model, slots, z, N_pose, prior if i else None)
         if i and not in_front.all():
             break  # keep the last iterate: the next linearization point has a point behind the camera
         if i:
-            r = _relinearized_residual(state, slots, r, Hp, Hl, mu0, lm0, v0)
             if factors:
-                prev_step = _next_step_size(state, slots, factors, r, r_prev, prev_step, tolerance)
+                prev_step = _next_step_size(state, slots, factors, r, r_prev, prev_step, tolerance, ops)
                 if prev_step is None:
                     break
-            _restore_prior(state, mu0, b0, lm0, v0, P0, factors)
+            ops.restore_prior(state, mu0, b0, lm0, v0, P0, factors)
         update(state, slots, r, Hp, Hl, V, factors=factors)
         r_prev = r
         done += 1
     if counts is not None:
         counts.append(done)
     return se3_log(state.imu_T_world @ se3_inverse(mu0))
+
+
+def _numpy_ops():
+    """The numpy arithmetic (:class:`vislam.core.kernels.NumpyOps`; imported here: that
+    module builds on this one)."""
+    from vislam.core.kernels import NumpyOps
+
+    return NumpyOps()
 
 
 def schmidt_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
