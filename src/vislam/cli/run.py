@@ -145,7 +145,7 @@ def open_rerun_recorder(args, sequence):
 def run(args) -> int:
     from vislam.tools.figure_process import FigureProcess
 
-    with FigureProcess() as figures:  # started once the inputs are checked
+    with FigureProcess() as figures:  # started once the flags are checked
         return _run(args, figures)
 
 
@@ -171,6 +171,11 @@ def _dataset_record(args, sequence, tracking) -> dict:
 
 
 def _run(args, figures) -> int:
+    _check_mode_flags(args)
+    # the figure helper imports matplotlib (~0.6 s) while this process imports, loads and
+    # filters: started first, so that a short recording does not wait for it (an input
+    # error later ends it unused)
+    figures.start()
     from vislam.core.estimators import run as run_estimator
     from vislam.core.results import run_warnings
     from vislam.core.sequence import imu_sample_warnings
@@ -179,7 +184,6 @@ def _run(args, figures) -> int:
     from vislam.tools.outputs import OutputStage, display_name, method_title, command_start_time, write_run_outputs
 
     start_time = command_start_time() or _COMMAND_START
-    _check_mode_flags(args)
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     sequence, tracking = load_data(args, args.out)
@@ -202,7 +206,6 @@ def _run(args, figures) -> int:
 
         sequence = apply_corrections(sequence, options)  # a no-op if the estimators apply them again
 
-    figures.start()  # its helper process imports matplotlib while this one filters
     stage = OutputStage(args.out)
     close, recorder = (lambda: None), None
     try:
