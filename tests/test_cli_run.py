@@ -63,6 +63,12 @@ def test_run_writes_the_outputs_of_each_mode(tmp_path, sim, mode, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["mode"] == mode and summary["frames"] == N_FRAMES and summary["partial"] is False
     assert summary["dataset"]["name"] == "drive" and summary["dataset"]["path"] == str(data.resolve())
+    if mode == "slam":  # which arithmetic the EKF ran (vislam.core.kernels)
+        from vislam.core import kernels
+
+        assert summary["filter_arithmetic"] == ("compiled" if kernels.kernels_enabled() else "numpy")
+    else:
+        assert "filter_arithmetic" not in summary
     ts, poses = read_tum(out / "trajectory.tum")
     np.testing.assert_allclose(ts, drive.sequence.timestamps_s, atol=1e-9)
     # pixel noise only, no IMU noise: every mode follows the true drive closely

@@ -19,8 +19,7 @@ from vislam.core.state import SlamState
 
 from conftest import HALF_SCENE
 
-pytestmark = pytest.mark.skipif(not kernels.kernels_available(),
-                                reason="the compiled extension vislam.core._ekf is not built")
+needs_kernels = pytest.mark.skipif(not kernels.kernels_available(), reason=str(kernels.UNAVAILABLE))
 
 RTOL = 1e-10
 
@@ -72,6 +71,7 @@ def _ops():
 CHARTS = [dict(), dict(landmark_parametrization="cartesian"), dict(update={"ekf": "standard"})]
 
 
+@needs_kernels
 @pytest.mark.parametrize("velocity_frame", ["level", "body"])
 @pytest.mark.parametrize("jacobian", [True, False])
 @pytest.mark.parametrize("eps", [None, np.zeros(6), np.array([0.01, -0.02, 0.005, 1e-3, -2e-3, 5e-4])])
@@ -87,6 +87,7 @@ def test_predict_matches_numpy(drive, velocity_frame, jacobian, eps):
     assert np.array_equal(b.cov, b.cov.T)
 
 
+@needs_kernels
 @pytest.mark.parametrize("options", CHARTS)
 @pytest.mark.parametrize("with_prior", [False, True])
 def test_linearize_matches_numpy(drive, options, with_prior):
@@ -109,6 +110,7 @@ def test_linearize_matches_numpy(drive, options, with_prior):
     assert np.array_equal(out_k[3], out_n[3])
 
 
+@needs_kernels
 def test_a_landmark_behind_the_camera_is_flagged_as_numpy_flags_it(drive):
     f, frame = _filter_at(drive, 15, landmark_parametrization="cartesian")
     slots, z = _observed(f, frame)
@@ -125,6 +127,7 @@ def test_a_landmark_behind_the_camera_is_flagged_as_numpy_flags_it(drive):
     _close(nis_k[2:], nis_n[2:], rtol=1e-9, what="NIS")
 
 
+@needs_kernels
 @pytest.mark.parametrize("options", CHARTS)
 def test_nis_blocks_and_drift_model_match_numpy(drive, options):
     f, frame = _filter_at(drive, 20, **options)
@@ -175,6 +178,7 @@ V4 = np.diag([1.0, 1.0, 1.0, 1.0])
 V_UNEQUAL = np.diag([1.0, 0.5, 1.0, 2.0])  # rows vL and vR of unequal noise: not compressed
 
 
+@needs_kernels
 @pytest.mark.parametrize("L, k", [(3, 2), (12, 8), (30, 25), (90, 80)])  # m = 3k: 6 ... 240 (blocked solve)
 @pytest.mark.parametrize("V", [V4, V_UNEQUAL], ids=["compressed", "four rows"])
 def test_update_matches_numpy(L, k, V):
@@ -201,6 +205,7 @@ def test_update_matches_numpy(L, k, V):
     _close(a.cov, prior.cov, rtol=1e-9, what="restored covariance (numpy)")
 
 
+@needs_kernels
 def test_an_ill_conditioned_innovation_is_solved_as_numpy_solves_it():
     """A prior far wider than the pixel noise (here 1e7 m landmarks, as after an hour
     without frames): S's condition number ~1e15. The kernels' blocked solve falls back to
@@ -221,6 +226,7 @@ def test_an_ill_conditioned_innovation_is_solved_as_numpy_solves_it():
     assert np.abs(b.cov - a.cov).max() <= 1e-11 * prior_scale
 
 
+@needs_kernels
 def test_an_innovation_that_is_not_positive_definite_raises_as_numpy_raises():
     a, b = _both(_synthetic(8, seed=2))
     slots, r, Hp, Hl = _observations(a, 5, seed=1)
@@ -234,6 +240,7 @@ def test_an_innovation_that_is_not_positive_definite_raises_as_numpy_raises():
     assert np.array_equal(b.cov, P_before)  # left untouched
 
 
+@needs_kernels
 @pytest.mark.parametrize("inverse_depth", [False, True])
 def test_compaction_and_marginals_match_numpy(inverse_depth):
     a, b = _both(_synthetic(20, seed=4, inverse_depth=inverse_depth))
@@ -248,6 +255,7 @@ def test_compaction_and_marginals_match_numpy(inverse_depth):
     assert np.array_equal(b.landmark_ids, a.landmark_ids) and b.dim == a.dim == 6 + 3 * 15
 
 
+@needs_kernels
 def test_health_finds_what_numpy_finds():
     num, ker = _ops()
     for poison in (None, "cov", "pose", "landmark", "diagonal"):
@@ -265,6 +273,7 @@ def test_health_finds_what_numpy_finds():
         assert ker.health(b) == num.health(a) == {None: 0, "diagonal": 2}.get(poison, 1), poison
 
 
+@needs_kernels
 def test_drift_sums_match_numpy():
     rng = np.random.default_rng(0)
     k, R = 12, 20
@@ -289,6 +298,7 @@ RUN_OPTIONS = [dict(), dict(landmark_parametrization="cartesian"), dict(update={
                dict(gating={"drift_test_probability": None}), dict(landmarks={"probation_frames": 2, "init_frames": 3})]
 
 
+@needs_kernels
 @pytest.mark.parametrize("options", RUN_OPTIONS)
 def test_whole_runs_agree_with_numpy(drive, options):
     opts = vislam.FilterOptions(velocity_noise_mps=0.3, angular_noise_radps=0.02, **options)
@@ -306,7 +316,9 @@ def test_whole_runs_agree_with_numpy(drive, options):
         assert getattr(b.stats, name) == getattr(a.stats, name), name
 
 
-def test_the_filter_takes_the_kernels_where_they_cover_its_state(drive):
+@needs_kernels
+def test_the_filter_takes_the_kernels_where_they_cover_its_state(drive, monkeypatch):
+    monkeypatch.setattr(kernels, "_ENABLED", True)  # also under VISLAM_KERNELS=0
     cal = drive.sequence.calibration
     assert SlamFilter(cal)._ops.compiled
     assert SlamFilter(cal, vislam.FilterOptions(landmark_parametrization="cartesian",
@@ -319,8 +331,43 @@ def test_the_filter_takes_the_kernels_where_they_cover_its_state(drive):
     assert SlamFilter(cal)._ops.compiled
 
 
+@needs_kernels
 def test_the_update_of_the_filter_is_the_ops_update(drive):
     """The iterated update and the plain update go through the same arithmetic object."""
     f = SlamFilter(drive.sequence.calibration)
     assert f._update == f._ops.update
     assert updaters.slam_update_iterated.__defaults__[-1] is None  # ops: numpy unless given
+
+
+def test_a_build_older_than_its_source_is_refused(monkeypatch):
+    """An editable install whose _ekf.c changed since it was built: the stale extension
+    is not called (its arguments may differ); the filter warns once and runs on numpy."""
+    import types
+    import sys
+
+    monkeypatch.setitem(sys.modules, "vislam.core._ekf", types.SimpleNamespace(ABI_VERSION=kernels.ABI_VERSION - 1))
+    module, why = kernels._load()
+    assert module is None and "older than its source" in why and "pip install -e ." in why
+
+
+def test_without_the_extension_the_filter_warns_once_and_runs_on_numpy(drive, monkeypatch, caplog):
+    monkeypatch.setattr(kernels, "_ekf", None)
+    monkeypatch.setattr(kernels, "_ENABLED", True)
+    monkeypatch.setattr(kernels, "UNAVAILABLE", "the compiled extension vislam.core._ekf is not built (test)")
+    monkeypatch.setattr(kernels, "_WARNED", False)
+    with caplog.at_level("WARNING", logger="vislam.core.kernels"):
+        filters = [SlamFilter(drive.sequence.calibration) for _ in range(2)]
+    assert all(f.arithmetic == "numpy" for f in filters)
+    warnings = [r for r in caplog.records if "not built" in r.getMessage()]
+    assert len(warnings) == 1 and "numpy path" in warnings[0].getMessage()
+
+
+def test_the_compiled_kernels_are_built():
+    """The installation this suite runs on built the extension (`pip install` with a C
+    compiler): else the filter silently runs 2-3x slower. Set VISLAM_KERNELS=0 to run the
+    suite on the numpy path on purpose."""
+    import os
+
+    if os.environ.get("VISLAM_KERNELS", "1").strip().lower() in ("0", "false", "no", "off"):
+        pytest.skip("VISLAM_KERNELS=0: the numpy path on purpose")
+    assert kernels.kernels_available(), kernels.UNAVAILABLE

@@ -1424,4 +1424,16 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef moduledef = {PyModuleDef_HEAD_INIT, "_ekf",
                                        "Compiled kernels of the SLAM EKF (see vislam.core.kernels).", -1, methods};
 
-PyMODINIT_FUNC PyInit__ekf(void) { return PyModule_Create(&moduledef); }
+/* The interface version vislam.core.kernels expects: raised with every change of a
+ * function's arguments, so that a build older than its sources (an editable install
+ * whose _ekf.c changed since `pip install -e .`) is refused instead of misread. */
+#define EKF_ABI_VERSION 1
+
+PyMODINIT_FUNC PyInit__ekf(void) {
+    PyObject *m = PyModule_Create(&moduledef);
+    if (m && PyModule_AddIntConstant(m, "ABI_VERSION", EKF_ABI_VERSION) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}

@@ -204,6 +204,9 @@ def _result(filt: StepwiseFilter, sequence: Sequence, out: _Collector, poses: np
     result = RunResult(filt.mode, sequence.name, sequence.timestamps_s[:done].copy(), world_T_imu,
                        out.covs[:done] if out.has_cov else None, landmarks, filt.options, stats,
                        partial=error is not None, error=error, calibration=calibration_used(sequence))
+    arithmetic = getattr(filt, "arithmetic", None)  # the SLAM EKF: compiled kernels or numpy
+    if arithmetic is not None:
+        result.extra["arithmetic"] = arithmetic
     final = filt.final_trajectory()
     if final is not None:  # a smoother: its final poses (and marginals) replace the online ones
         result.extra["online_world_T_imu"] = result.world_T_imu

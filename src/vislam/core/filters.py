@@ -529,6 +529,12 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
 
     # --- read access ----------------------------------------------------------------
     @property
+    def arithmetic(self) -> str:
+        """"compiled" when the per-frame arithmetic runs in the compiled kernels
+        (:mod:`vislam.core.kernels`), else "numpy"."""
+        return "compiled" if self._ops.compiled else "numpy"
+
+    @property
     def frame_index(self) -> int:
         """Index of the newest frame received (−1 before the first)."""
         return self._t + (self._stall_buffer.n_pending if self._stall_buffer is not None else 0)

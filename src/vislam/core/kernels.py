@@ -25,11 +25,14 @@ runs of both on simulated drives. The compiled path covers the default state (po
 3-parameter landmarks, either chart, with or without the OC projection); the IMU-error
 state and the landmark motion model run on numpy. ``VISLAM_KERNELS=0`` in the
 environment (read at import) or :func:`use_kernels` selects the numpy path for filters
-made afterwards; :func:`kernels_available` tells whether the extension was built.
+made afterwards; :func:`kernels_available` tells whether the extension was built (where it
+was not, or is older than its source, the first filter that would have used it logs a
+warning, :data:`UNAVAILABLE`, and runs on numpy).
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 from contextlib import contextmanager
@@ -43,13 +46,28 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["NumpyOps", "KernelOps", "kernels_available", "kernels_enabled", "use_kernels", "ops_for"]
 
-try:  # built by pip install (setup.py); optional
-    from vislam.core import _ekf
-except ImportError:  # pragma: no cover - depends on the installation
-    _ekf = None
+#: The interface version of vislam.core._ekf this module calls (its ABI_VERSION).
+ABI_VERSION = 1
 
+
+def _load():
+    """(the extension module or None, why it is not used)."""
+    try:  # built by pip install (setup.py); optional
+        module = importlib.import_module("vislam.core._ekf")
+    except ImportError as exc:
+        return None, (f"the compiled extension vislam.core._ekf is not built ({exc}; `pip install` needs a C "
+                      f"compiler and Python's headers)")
+    version = getattr(module, "ABI_VERSION", None)
+    if version != ABI_VERSION:
+        return None, (f"the compiled extension vislam.core._ekf is older than its source (interface "
+                      f"{version}, expected {ABI_VERSION}): run `pip install -e .` again")
+    return module, None
+
+
+_ekf, UNAVAILABLE = _load()
 _LAPACK_READY = False
-_ENABLED = os.environ.get("VISLAM_KERNELS", "1").strip() not in ("0", "false", "no", "off")
+_ENABLED = os.environ.get("VISLAM_KERNELS", "1").strip().lower() not in ("0", "false", "no", "off")
+_WARNED = False
 
 
 def _ready() -> bool:
@@ -68,7 +86,8 @@ def _ready() -> bool:
 
 
 def kernels_available() -> bool:
-    """Whether the compiled extension ``vislam.core._ekf`` is installed."""
+    """Whether the compiled extension ``vislam.core._ekf`` is installed (and matches
+    this source; :data:`UNAVAILABLE` says why not)."""
     return _ekf is not None
 
 
@@ -95,11 +114,20 @@ def ops_for(state, reference: bool = False, drift: bool = True):
     compiled path covers it and is enabled, else :class:`NumpyOps` (``reference``: the
     filter's plain dense update, numpy only; ``drift``: whether the filter runs the drift
     test, whose model the compiled path forms with the NIS)."""
-    if (not reference and kernels_enabled() and state.lm_dim == 3 and not state.has_bias
-            and state.core_dim == POSE_DIM and _ready()):
+    covered = not reference and state.lm_dim == 3 and not state.has_bias and state.core_dim == POSE_DIM
+    if covered and kernels_enabled() and _ready():
         state.kernels = _ekf  # its compaction and marginals
         return KernelOps(drift)
+    if covered and _ENABLED:
+        _warn_once()
     return NumpyOps(reference)
+
+
+def _warn_once() -> None:
+    global _WARNED
+    if not _WARNED:
+        _WARNED = True
+        logger.warning("%s; the SLAM filter runs its numpy path, 2-3x slower", UNAVAILABLE)
 
 
 # ----------------------------------------------------------------------------- numpy

@@ -186,7 +186,8 @@ class RunResult:
             initialized, rejected, live_landmarks, nis_mean, nis_count), or None.
         extra: more results of some runs, e.g. ``"imu_bias"``: (T, 6) estimate b̂ =
             (b_v, b_ω) of the SLAM filter's IMU-error state after each frame (m/s,
-            rad/s), when it is on (FilterOptions.imu_bias_sigma_*).
+            rad/s), when it is on (FilterOptions.imu_bias_sigma_*); ``"arithmetic"``
+            (SLAM): "compiled" or "numpy", which path of :mod:`vislam.core.kernels` ran.
         calibration: the ``cam_T_imu`` the run used and the corrections that made it
             (:class:`CalibrationUsed`), or None for a result built by hand; every
             consumer converting camera ground truth takes the transform from here.

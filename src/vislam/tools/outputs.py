@@ -571,7 +571,8 @@ def build_summary(result: RunResult, *, dataset: Mapping[str, Any], duration_s: 
     ``start_time``, an epoch time — the process start when known — to now),
     ``duration_s`` (of the recording), ``real_time_factor`` (filter_seconds / duration of
     the frames processed; < 1 is faster than real time), ``partial``, ``error``,
-    ``outputs``, ``imu_bias`` (mean, RMS and final b̂ of the SLAM filter's IMU-error state,
+    ``outputs``, ``filter_arithmetic`` (SLAM: "compiled" kernels or "numpy", see
+    :mod:`vislam.core.kernels`), ``imu_bias`` (mean, RMS and final b̂ of the SLAM filter's IMU-error state,
     when on), ``calibration`` (the cam_T_imu the filter used, the file's, the corrections;
     see the module docstring) and the entries of ``extra``. Non-finite numbers become null on writing.
     """
@@ -592,6 +593,8 @@ def build_summary(result: RunResult, *, dataset: Mapping[str, Any], duration_s: 
     s["partial"] = bool(result.partial)
     s["error"] = result.error
     s["outputs"] = list(outputs)
+    if result.extra.get("arithmetic"):
+        s["filter_arithmetic"] = result.extra["arithmetic"]
     if result.calibration is not None:
         s["calibration"] = _calibration_record(result, (extra or {}).get("auto"))
     bias = result.extra.get("imu_bias") if result.extra else None
