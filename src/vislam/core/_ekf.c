@@ -1285,6 +1285,18 @@ static PyObject *py_compact(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* Whether the n doubles at x are all finite: an exponent field of all ones is inf or
+ * NaN (integer tests, which the compiler vectorizes). */
+static int all_finite(const double *x, Py_ssize_t n) {
+    unsigned long long bad = 0;
+    for (Py_ssize_t j = 0; j < n; j++) {
+        unsigned long long b;
+        memcpy(&b, x + j, sizeof b);
+        bad |= (unsigned long long)((b & 0x7ff0000000000000ULL) == 0x7ff0000000000000ULL);
+    }
+    return bad == 0;
+}
+
 /* SlamFilter._check_health's tests: 1 when the pose, a landmark mean or Sigma is not
  * finite, 2 when a diagonal entry of Sigma is below -1e-9, else 0.
  * health(T, lm_mean, P, n, ld) */
@@ -1306,15 +1318,10 @@ static PyObject *py_health(PyObject *self, PyObject *args) {
         return NULL;
     }
     int status = 0;
-    double acc = 0.0; /* x - x is 0 for finite x and NaN otherwise: one test per array */
-    for (int i = 0; i < 16; i++) acc += T[i] - T[i];
-    for (Py_ssize_t i = 0; i < nl; i++) acc += lm[i] - lm[i];
-    for (Py_ssize_t i = 0; i < n && acc == 0.0; i++) {
-        const double *row = P + i * ld;
-        for (Py_ssize_t j = 0; j < n; j++) acc += row[j] - row[j];
-    }
-    if (acc != 0.0) status = 1;
-    else
+    if (!all_finite(T, 16) || !all_finite(lm, nl)) status = 1;
+    for (Py_ssize_t i = 0; i < n && !status; i++)
+        if (!all_finite(P + i * ld, n)) status = 1;
+    if (!status)
         for (Py_ssize_t i = 0; i < n; i++)
             if (P[i * ld + i] < -1e-9) {
                 status = 2;
