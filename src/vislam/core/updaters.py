@@ -696,10 +696,11 @@ def slam_initialize_landmarks(state: SlamState, model: StereoModel, ids: np.ndar
     cross = Gp @ state.cov[:POSE_DIM, :n]  # Σ_m,x = G_p Σ_p,x (x: pose, IMU-error state, landmarks)
     new = Gp @ state.pose_cov @ Gp.T  # G_p Σ_pp G_pᵀ
     pix_cov = G_pix @ V @ np.swapaxes(G_pix, 1, 2)  # G_z V G_zᵀ per landmark
-    for i in range(k):
-        new[d * i:d * i + 3, d * i:d * i + 3] += pix_cov[i]
-        if d == 6:
-            new[d * i + 3:d * i + 6, d * i + 3:d * i + 6] += velocity_var * np.eye(3)
+    blocks = new.reshape(k, d, k, d)  # blocks[i, :, j, :]: landmark i's rows, landmark j's columns (a view)
+    each = np.arange(k)
+    blocks[each, :3, each, :3] += pix_cov  # + G_z V G_zᵀ on each landmark's own block
+    if d == 6:
+        blocks[each, 3:, each, 3:] += velocity_var * np.eye(3)
     null = G_pose @ N_pose if N_pose is not None else None  # N_m = G_p N_pose (velocity: 0)
     return state.add_landmarks(ids, p_w, cross, new, null, anchors)
 
