@@ -32,7 +32,8 @@ def sorted_positions(a: np.ndarray, sorted_b: np.ndarray) -> tuple[np.ndarray, n
     indices, when ``sorted_b`` is empty)."""
     if sorted_b.size == 0:
         return np.zeros(np.shape(a), dtype=np.int64), np.zeros(np.shape(a), dtype=bool)
-    pos = np.minimum(np.searchsorted(sorted_b, a), sorted_b.size - 1)
+    pos = sorted_b.searchsorted(a)  # (the method: numpy's function wrapper costs as much as the search here)
+    np.minimum(pos, sorted_b.size - 1, out=pos)
     return pos, sorted_b[pos] == a
 
 
@@ -307,17 +308,22 @@ class MapBuilder:
         return chunk
 
     def add(self, ids, p, cov, nobs, ngated, first, last, status, v=None) -> None:
-        k = int(np.size(ids))
-        values = {"ids": ids, "p": np.reshape(p, (k, 3)), "cov": np.reshape(cov, (k, 3, 3)),
-                  "nobs": nobs, "ngated": ngated, "first": first, "last": last,
-                  "status": np.broadcast_to(status, (k,)), "v": np.zeros((k, 3)) if v is None else np.reshape(v, (k, 3))}
+        """Append k entries: ``ids`` (k,), ``p`` (k, 3), ``cov`` (k, 3, 3), the counts and
+        frames (k,) or scalars, ``status`` one value or (k,), ``v`` (k, 3) or None (zero)."""
+        ids = np.asarray(ids)
+        k = ids.size
+        values = {"ids": ids, "p": np.asarray(p).reshape(k, 3), "cov": np.asarray(cov).reshape(k, 3, 3),
+                  "nobs": np.asarray(nobs), "ngated": np.asarray(ngated), "first": np.asarray(first),
+                  "last": np.asarray(last), "status": np.asarray(status),
+                  "v": np.zeros(()) if v is None else np.asarray(v).reshape(k, 3)}
         done = 0
         while done < k:
             offset = self.n % self.CHUNK
             chunk = self._chunks[-1] if offset else self._new_chunk()
             m = min(k - done, self.CHUNK - offset)
             for key, value in values.items():
-                chunk[key][offset:offset + m] = value[done:done + m] if np.ndim(value) else value
+                # arrays are sliced, scalars (one status for all, no velocities) broadcast
+                chunk[key][offset:offset + m] = value[done:done + m] if value.ndim else value
             done += m
             self.n += m
 
