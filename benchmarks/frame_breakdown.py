@@ -38,11 +38,18 @@ except ImportError:  # pragma: no cover - older trees
 TOTALS: dict[str, float] = defaultdict(float)
 CALLS: dict[str, int] = defaultdict(int)
 
-#: The arithmetic of a frame's steps: the compiled KernelOps and the numpy NumpyOps (timed
-#: under the same labels: a run takes one of them), or, in older trees, the updaters' functions.
-_OPS = (kernels.KernelOps, kernels.NumpyOps) if kernels is not None else (filters,)
+#: Where each step of the arithmetic lives: in the compiled KernelOps and the numpy
+#: NumpyOps (a run takes one; both are timed under the same label), or, in trees before
+#: vislam.core.kernels, the updaters' functions as the filters module imported them.
+if kernels is not None:
+    _OPS = (kernels.KernelOps, kernels.NumpyOps)
+    _LINEARIZE, _UPDATE = (kernels.KernelOps, updaters), (kernels.KernelOps, updaters)
+else:  # pragma: no cover - older trees
+    _OPS = _UPDATE = (filters,)
+    _LINEARIZE = (updaters,)
 
-#: (label, owner(s), attribute or attributes): the steps timed, in the order printed (indented: inside the one above)
+#: (label, owner(s), attribute or attributes — the first one each owner has): the steps
+#: timed, in the order printed (indented: inside the one above)
 STEPS = [
     ("stall buffer (push/release)", StallRemapBuffer, "push"),
     ("prediction", filters.SlamFilter, "predict"),
@@ -50,11 +57,10 @@ STEPS = [
     ("  select (repeats, rejected)", filters.SlamFilter, "_select"),
     ("  update of live landmarks", filters.SlamFilter, "_update_live"),
     ("    linearize + NIS (Jacobians, gating)", _OPS, ("predict_nis", "slam_predict_nis")),
-    ("    (every linearization: here and iterating)", _OPS if kernels is not None else (updaters,),
-     ("linearize", "_linearize")),
+    ("    (every linearization: here and iterating)", _LINEARIZE, ("linearize", "_linearize")),
     ("    drift-test model", _OPS, ("residual_model", "conditional_residual_model")),
     ("    iterated update", filters, "slam_update_iterated"),
-    ("      EKF update (gain, covariance)", _OPS, ("update", "slam_update")),
+    ("      EKF update (gain, covariance)", _UPDATE, ("update", "slam_update")),
     ("      iteration decision (step size)", _OPS if kernels is not None else (updaters,), ("step_size", "_step_size")),
     ("    drift test", filters.SlamFilter, "_drift_test"),
     ("    Schmidt update (young landmarks)", filters, "schmidt_update"),
