@@ -1,6 +1,6 @@
 """The documentation site builds: ``mkdocs build --strict`` (every page in the nav, every
 link and anchor between pages, every ``:::`` API reference resolvable from the
-docstrings), into a temporary folder."""
+docstrings), into a temporary folder, with every fenced block rendered as code."""
 
 from __future__ import annotations
 
@@ -19,3 +19,8 @@ def test_mkdocs_build_strict(tmp_path):
     api = (tmp_path / "site" / "api" / "index.html").read_text(encoding="utf-8")
     assert "pop_final_poses" in api and "FilterOptions" in api  # mkdocstrings rendered the reference
     assert (tmp_path / "site" / "img" / "dense-0027-slam.png").is_file()
+    # every fenced block rendered as code: a fence left as text (``` in a paragraph) is a
+    # page whose examples run together with its prose (the pages' test tags did that)
+    raw = [p.relative_to(tmp_path / "site").as_posix() for p in (tmp_path / "site").rglob("*.html")
+           if "<p>```" in p.read_text(encoding="utf-8")]
+    assert not raw, raw
