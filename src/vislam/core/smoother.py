@@ -766,10 +766,13 @@ class SmootherFilter(StepwiseFilter):
         typical = float(np.median(stat[valid]))
         moving = valid & (stat > self._drift_gate * max(typical, 1e-12))
         speed = np.zeros(n)
-        if np.any(moving):
-            speed = self._apparent_speed(cam_T_world, p, ts, r, front, starts)
-            moving &= speed > self.options.smoother_drift_min_speed_mps
         drift_log = self.diagnostics.drift_log
+        if np.any(moving):  # the speed of the trending ones (of all of them for the log)
+            rows = np.ones(owner.size, dtype=bool) if drift_log is not None else moving[owner]
+            sub = owner[rows]
+            first = np.flatnonzero(np.r_[True, sub[1:] != sub[:-1]])
+            speed[sub[first]] = self._apparent_speed(cam_T_world[rows], p[rows], ts[rows], r[rows], front[rows], first)
+            moving &= speed > self.options.smoother_drift_min_speed_mps
         if drift_log is not None:
             drift_log.extend(zip([lm.id for lm, _ in todo], cnt.tolist(), (stat / max(typical, 1e-12)).tolist(),
                                  speed.tolist(), [self.frame_index] * n))
