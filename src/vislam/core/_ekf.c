@@ -17,6 +17,9 @@
  * scipy.linalg.cython_blas / cython_lapack, handed over once by set_lapack(). Those
  * routines are column-major: a row-major r x c array is the column-major c x r array
  * of its transpose, which is how every call below reads its arguments.
+ *
+ * Compiled with -DEKF_TIMING, update() accumulates the time of each of its stages and
+ * timings() returns them (for profiling; docs/benchmarks.md "Where a frame's time goes").
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -63,6 +66,26 @@ static int get_buf(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t item
         view->obj = NULL;
         return -1;
     }
+    return 0;
+}
+
+/* How many items of `itemsize` bytes the C-contiguous buffer of `obj` holds (-1 with an
+ * exception set when it has none). */
+static Py_ssize_t items_of(PyObject *obj, Py_ssize_t itemsize) {
+    Py_buffer view;
+    if (PyObject_GetBuffer(obj, &view, PyBUF_C_CONTIGUOUS) < 0) return -1;
+    Py_ssize_t n = view.len / itemsize;
+    PyBuffer_Release(&view);
+    return n;
+}
+
+/* 0 when every index of idx (k) is in [0, limit), else -1 with an IndexError naming `what`. */
+static int check_indices(const long long *idx, Py_ssize_t k, Py_ssize_t limit, const char *what) {
+    for (Py_ssize_t i = 0; i < k; i++)
+        if (idx[i] < 0 || idx[i] >= limit) {
+            PyErr_Format(PyExc_IndexError, "_ekf: %s index %lld out of range (0..%zd)", what, idx[i], limit - 1);
+            return -1;
+        }
     return 0;
 }
 
@@ -483,13 +506,10 @@ static PyObject *py_linearize(PyObject *self, PyObject *args) {
         return NULL;
     Bufs bufs = {.n = 0};
     int err = 0;
-    Py_buffer tmp;
-    if (PyObject_GetBuffer(oslots, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t k = tmp.len / 8;
-    PyBuffer_Release(&tmp);
-    if (PyObject_GetBuffer(olm, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t L = tmp.len / 24;
-    PyBuffer_Release(&tmp);
+    Py_ssize_t k = items_of(oslots, 8);
+    if (k < 0) return NULL;
+    Py_ssize_t L = items_of(olm, 24);
+    if (L < 0) return NULL;
     const double *T = D(oT, 16, "T");
     const double *CT = D(oC, 16, "cam_T_imu");
     const double *M = D(oM, 16, "M");
@@ -509,12 +529,10 @@ static PyObject *py_linearize(PyObject *self, PyObject *args) {
         release_all(&bufs);
         return NULL;
     }
-    for (Py_ssize_t i = 0; i < k; i++)
-        if (slots[i] < 0 || slots[i] >= L) {
-            release_all(&bufs);
-            PyErr_SetString(PyExc_IndexError, "_ekf.linearize: slot out of range");
-            return NULL;
-        }
+    if (check_indices(slots, k, L, "linearize: slot") < 0) {
+        release_all(&bufs);
+        return NULL;
+    }
     int status = 0;
     double CW[16]; /* cam_T_world = cam_T_imu mu */
     matmul(CT, T, CW, 4, 4, 4);
@@ -670,10 +688,8 @@ static PyObject *py_innovation(PyObject *self, PyObject *args) {
         return NULL;
     Bufs bufs = {.n = 0};
     int err = 0;
-    Py_buffer tmp;
-    if (PyObject_GetBuffer(oslots, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t k = tmp.len / 8;
-    PyBuffer_Release(&tmp);
+    Py_ssize_t k = items_of(oslots, 8);
+    if (k < 0) return NULL;
     const double *P = D(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
     const long long *slots = I64(oslots, k, "slots");
     const double *r = D(or, 4 * k, "r");
@@ -691,12 +707,10 @@ static PyObject *py_innovation(PyObject *self, PyObject *args) {
         release_all(&bufs);
         return NULL;
     }
-    for (Py_ssize_t i = 0; i < k; i++)
-        if (slots[i] < 0 || core + 3 * slots[i] + 3 > n) {
-            release_all(&bufs);
-            PyErr_SetString(PyExc_IndexError, "_ekf.innovation: slot out of range");
-            return NULL;
-        }
+    if (check_indices(slots, k, (n - core) / 3, "innovation: slot") < 0) {
+        release_all(&bufs);
+        return NULL;
+    }
     for (int a = 0; a < 6; a++)
         for (int b = 0; b < 6; b++) Ppp[a * 6 + b] = P[a * ld + b];
     for (Py_ssize_t i = 0; i < k; i++) {
@@ -896,13 +910,10 @@ static PyObject *py_update(PyObject *self, PyObject *args) {
     TSTART;
     Bufs bufs = {.n = 0};
     int err = 0;
-    Py_buffer tmp;
-    if (PyObject_GetBuffer(oslots, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t k = tmp.len / 8;
-    PyBuffer_Release(&tmp);
-    if (PyObject_GetBuffer(olm, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t Lm = tmp.len / 24;
-    PyBuffer_Release(&tmp);
+    Py_ssize_t k = items_of(oslots, 8);
+    if (k < 0) return NULL;
+    Py_ssize_t Lm = items_of(olm, 24);
+    if (Lm < 0) return NULL;
     int mr = compress ? 3 : 4;
     Py_ssize_t m = mr * k;
     double *P = DW(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
@@ -927,12 +938,10 @@ static PyObject *py_update(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "_ekf.update: n != core + 3 L");
         return NULL;
     }
-    for (Py_ssize_t i = 0; i < k; i++)
-        if (slots[i] < 0 || slots[i] >= Lm) {
-            release_all(&bufs);
-            PyErr_SetString(PyExc_IndexError, "_ekf.update: slot out of range");
-            return NULL;
-        }
+    if (check_indices(slots, k, Lm, "update: slot") < 0) {
+        release_all(&bufs);
+        return NULL;
+    }
     if (k == 0) {
         for (Py_ssize_t x = 0; x < n; x++) dx[x] = 0.0;
         memcpy(To, T, 16 * sizeof(double));
@@ -1091,10 +1100,8 @@ static PyObject *py_gain_times(PyObject *self, PyObject *args) {
     if (need_lapack() < 0) return NULL;
     Bufs bufs = {.n = 0};
     int err = 0;
-    Py_buffer tmp;
-    if (PyObject_GetBuffer(odr, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t k = tmp.len / 32;
-    PyBuffer_Release(&tmp);
+    Py_ssize_t k = items_of(odr, 32);
+    if (k < 0) return NULL;
     int mr = compress ? 3 : 4;
     Py_ssize_t m = mr * k;
     const double *L = D(oL, m * m, "L");
@@ -1131,10 +1138,8 @@ static PyObject *py_step_size(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OnnnOO", &oP, &n, &ld, &core, &oslots, &odx)) return NULL;
     Bufs bufs = {.n = 0};
     int err = 0;
-    Py_buffer tmp;
-    if (PyObject_GetBuffer(oslots, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t k = tmp.len / 8;
-    PyBuffer_Release(&tmp);
+    Py_ssize_t k = items_of(oslots, 8);
+    if (k < 0) return NULL;
     const double *P = D(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
     const long long *slots = I64(oslots, k, "slots");
     const double *dx = D(odx, n, "dx");
@@ -1156,13 +1161,12 @@ static PyObject *py_step_size(PyObject *self, PyObject *args) {
     /* as numpy: qmax = q.max() (NaN if any is), size = max(size, qmax), sqrt(max(size, 0)) */
     double qmax = -INFINITY;
     int qnan = 0;
+    if (check_indices(slots, k, (n - core) / 3, "step_size: slot") < 0) {
+        release_all(&bufs);
+        return NULL;
+    }
     for (Py_ssize_t i = 0; i < k; i++) {
         Py_ssize_t row = core + 3 * slots[i];
-        if (slots[i] < 0 || row + 3 > n) {
-            release_all(&bufs);
-            PyErr_SetString(PyExc_IndexError, "_ekf.step_size: slot out of range");
-            return NULL;
-        }
         double B[9], e[3];
         for (int a = 0; a < 3; a++) {
             for (int b = 0; b < 3; b++) B[a * 3 + b] = P[(row + a) * ld + row + b];
@@ -1199,13 +1203,10 @@ static PyObject *py_drift(PyObject *self, PyObject *args) {
         return NULL;
     Bufs bufs = {.n = 0};
     int err = 0;
-    Py_buffer tmp;
-    if (PyObject_GetBuffer(orows, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t k = tmp.len / 8;
-    PyBuffer_Release(&tmp);
-    if (PyObject_GetBuffer(ocnt, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t R = tmp.len / 8;
-    PyBuffer_Release(&tmp);
+    Py_ssize_t k = items_of(orows, 8);
+    if (k < 0) return NULL;
+    Py_ssize_t R = items_of(ocnt, 8);
+    if (R < 0) return NULL;
     const double *Lt = D(oLt, 16 * k, "Lt");
     const double *Ht = D(oHt, 24 * k, "Ht");
     const double *r = D(or, 4 * k, "r");
@@ -1220,13 +1221,12 @@ static PyObject *py_drift(PyObject *self, PyObject *args) {
         return NULL;
     }
     long count = 0;
+    if (check_indices(rows, k, R, "drift: row") < 0) {
+        release_all(&bufs);
+        return NULL;
+    }
     for (Py_ssize_t i = 0; i < k; i++) {
         long long row = rows[i];
-        if (row < 0 || row >= R) {
-            release_all(&bufs);
-            PyErr_SetString(PyExc_IndexError, "_ekf.drift: row out of range");
-            return NULL;
-        }
         const double *ht = Ht + 24 * i;
         double e[4], w[4];
         for (int a = 0; a < 4; a++) {
@@ -1260,10 +1260,8 @@ static PyObject *py_compact(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OnnO", &oP, &n, &ld, &okeep)) return NULL;
     Bufs bufs = {.n = 0};
     int err = 0;
-    Py_buffer tmp;
-    if (PyObject_GetBuffer(okeep, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t m = tmp.len / 8;
-    PyBuffer_Release(&tmp);
+    Py_ssize_t m = items_of(okeep, 8);
+    if (m < 0) return NULL;
     double *P = DW(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
     const long long *keep = I64(okeep, m, "keep");
     if (err) {
@@ -1306,10 +1304,8 @@ static PyObject *py_health(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OOOnn", &oT, &olm, &oP, &n, &ld)) return NULL;
     Bufs bufs = {.n = 0};
     int err = 0;
-    Py_buffer tmp;
-    if (PyObject_GetBuffer(olm, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t nl = tmp.len / 8;
-    PyBuffer_Release(&tmp);
+    Py_ssize_t nl = items_of(olm, 8);
+    if (nl < 0) return NULL;
     const double *T = D(oT, 16, "T");
     const double *lm = D(olm, nl, "lm_mean");
     const double *P = D(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
@@ -1341,13 +1337,10 @@ static PyObject *py_marginals(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OOOnnnOOO", &olm, &oanc, &oP, &n, &ld, &core, &oslots, &op, &ocov)) return NULL;
     Bufs bufs = {.n = 0};
     int err = 0;
-    Py_buffer tmp;
-    if (PyObject_GetBuffer(oslots, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t k = tmp.len / 8;
-    PyBuffer_Release(&tmp);
-    if (PyObject_GetBuffer(olm, &tmp, PyBUF_C_CONTIGUOUS) < 0) return NULL;
-    Py_ssize_t L = tmp.len / 24;
-    PyBuffer_Release(&tmp);
+    Py_ssize_t k = items_of(oslots, 8);
+    if (k < 0) return NULL;
+    Py_ssize_t L = items_of(olm, 24);
+    if (L < 0) return NULL;
     const double *lm = D(olm, 3 * L, "lm_mean");
     const double *anc = DOPT(oanc, 16 * L, "anchors");
     const double *P = D(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
@@ -1358,14 +1351,13 @@ static PyObject *py_marginals(PyObject *self, PyObject *args) {
         release_all(&bufs);
         return NULL;
     }
+    if (check_indices(slots, k, L < (n - core) / 3 ? L : (n - core) / 3, "marginals: slot") < 0) {
+        release_all(&bufs);
+        return NULL;
+    }
     for (Py_ssize_t i = 0; i < k; i++) {
         long long s = slots[i];
         Py_ssize_t row = core + 3 * s;
-        if (s < 0 || s >= L || row + 3 > n) {
-            release_all(&bufs);
-            PyErr_SetString(PyExc_IndexError, "_ekf.marginals: slot out of range");
-            return NULL;
-        }
         double C[9];
         for (int a = 0; a < 3; a++)
             for (int b = 0; b < 3; b++) C[a * 3 + b] = P[(row + a) * ld + row + b];
