@@ -120,6 +120,11 @@ static void *arg(Bufs *b, PyObject *obj, int writable, Py_ssize_t itemsize, Py_s
     return v->buf;
 }
 
+/* Σ's buffer: n x n used rows and columns of a row-major buffer of leading dimension ld
+ * (the pose block, 6 x 6, always there); an impossible shape asks for more items than
+ * any buffer has, so get_buf refuses it. */
+#define COV_ITEMS(n, ld) (((n) < 6 || (ld) < (n)) ? PY_SSIZE_T_MAX / 8 : (ld) * ((n) - 1) + (n))
+
 #define D(o, cnt, name) ((double *)arg(&bufs, (o), 0, 8, (cnt), (name), 0, &err))
 #define DW(o, cnt, name) ((double *)arg(&bufs, (o), 1, 8, (cnt), (name), 0, &err))
 #define DOPT(o, cnt, name) ((double *)arg(&bufs, (o), 0, 8, (cnt), (name), 1, &err))
@@ -410,7 +415,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args) {
     int err = 0;
     const double *T = D(oT, 16, "T");
     double *To = DW(oTo, 16, "T_out");
-    double *P = DW(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
+    double *P = DW(oP, COV_ITEMS(n, ld), "P");
     const double *u_in = D(ou, 6, "u");
     const double *W = D(oW, 36, "W");
     const double *eps = DOPT(oeps, 6, "eps");
@@ -690,7 +695,7 @@ static PyObject *py_innovation(PyObject *self, PyObject *args) {
     int err = 0;
     Py_ssize_t k = items_of(oslots, 8);
     if (k < 0) return NULL;
-    const double *P = D(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
+    const double *P = D(oP, COV_ITEMS(n, ld), "P");
     const long long *slots = I64(oslots, k, "slots");
     const double *r = D(or, 4 * k, "r");
     const double *Hp = D(oHp, 24 * k, "Hp");
@@ -916,7 +921,7 @@ static PyObject *py_update(PyObject *self, PyObject *args) {
     if (Lm < 0) return NULL;
     int mr = compress ? 3 : 4;
     Py_ssize_t m = mr * k;
-    double *P = DW(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
+    double *P = DW(oP, COV_ITEMS(n, ld), "P");
     const long long *slots = I64(oslots, k, "slots");
     const double *r = D(or, 4 * k, "r");
     const double *Hp = D(oHp, 24 * k, "Hp");
@@ -1074,7 +1079,7 @@ static PyObject *py_restore(PyObject *self, PyObject *args) {
     if (need_lapack() < 0) return NULL;
     Bufs bufs = {.n = 0};
     int err = 0;
-    double *P = DW(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
+    double *P = DW(oP, COV_ITEMS(n, ld), "P");
     const double *Bt = D(oBt, n * m, "Bt");
     if (err) {
         release_all(&bufs);
@@ -1140,7 +1145,7 @@ static PyObject *py_step_size(PyObject *self, PyObject *args) {
     int err = 0;
     Py_ssize_t k = items_of(oslots, 8);
     if (k < 0) return NULL;
-    const double *P = D(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
+    const double *P = D(oP, COV_ITEMS(n, ld), "P");
     const long long *slots = I64(oslots, k, "slots");
     const double *dx = D(odx, n, "dx");
     if (err) {
@@ -1262,7 +1267,7 @@ static PyObject *py_compact(PyObject *self, PyObject *args) {
     int err = 0;
     Py_ssize_t m = items_of(okeep, 8);
     if (m < 0) return NULL;
-    double *P = DW(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
+    double *P = DW(oP, COV_ITEMS(n, ld), "P");
     const long long *keep = I64(okeep, m, "keep");
     if (err) {
         release_all(&bufs);
@@ -1308,7 +1313,7 @@ static PyObject *py_health(PyObject *self, PyObject *args) {
     if (nl < 0) return NULL;
     const double *T = D(oT, 16, "T");
     const double *lm = D(olm, nl, "lm_mean");
-    const double *P = D(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
+    const double *P = D(oP, COV_ITEMS(n, ld), "P");
     if (err) {
         release_all(&bufs);
         return NULL;
@@ -1343,7 +1348,7 @@ static PyObject *py_marginals(PyObject *self, PyObject *args) {
     if (L < 0) return NULL;
     const double *lm = D(olm, 3 * L, "lm_mean");
     const double *anc = DOPT(oanc, 16 * L, "anchors");
-    const double *P = D(oP, ld * (n > 0 ? n - 1 : 0) + n, "P");
+    const double *P = D(oP, COV_ITEMS(n, ld), "P");
     const long long *slots = I64(oslots, k, "slots");
     double *pout = DW(op, 3 * k, "p_out");
     double *cout = DW(ocov, 9 * k, "cov_out");
