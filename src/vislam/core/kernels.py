@@ -116,7 +116,7 @@ def ops_for(state, reference: bool = False, drift: bool = True):
     test, whose model the compiled path forms with the NIS)."""
     covered = not reference and state.lm_dim == 3 and not state.has_bias and state.core_dim == POSE_DIM
     if covered and kernels_enabled() and _ready():
-        state.kernels = _ekf  # its compaction and marginals
+        state.compiled = True  # its compaction and marginals
         return KernelOps(drift)
     if covered and _ENABLED:
         _warn_once()
@@ -201,6 +201,10 @@ class KernelOps:
         self._drift = bool(drift)  # form the drift test's model with the NIS
         self._model_of = None  # the blocks tuple the stored drift model belongs to
         self._model = None
+
+    def __reduce__(self):
+        # a pickled filter unpickled where the extension is missing goes on in numpy
+        return (_unpickled_ops, (self._drift,))
 
     # --- prediction -------------------------------------------------------------------
     @staticmethod
@@ -315,3 +319,12 @@ class KernelOps:
                    np.ascontiguousarray(ok), np.ascontiguousarray(rows, dtype=np.int64), drift_sum, drift_n,
                    float(gate), moving)
         return moving
+
+
+def _unpickled_ops(drift: bool):
+    """A filter's :class:`KernelOps` after pickling: itself where the extension is
+    available here, else the numpy arithmetic (with the warning)."""
+    if kernels_enabled() and _ready():
+        return KernelOps(drift)
+    _warn_once()
+    return NumpyOps()

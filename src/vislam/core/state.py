@@ -75,10 +75,20 @@ class SlamState:
     #: Factor by which the covariance buffer grows when it is full.
     GROWTH = 1.25
 
-    #: The compiled kernels (``vislam.core._ekf``) that :meth:`remove_slots` and
-    #: :meth:`landmark_marginals` use, set by :func:`vislam.core.kernels.ops_for`; None:
-    #: numpy (the same numbers: the compaction moves entries, the marginals agree to rounding).
-    kernels = None
+    #: Whether :meth:`remove_slots` and :meth:`landmark_marginals` call the compiled
+    #: kernels (``vislam.core._ekf``; set by :func:`vislam.core.kernels.ops_for`), else
+    #: numpy: the same numbers (the compaction moves entries, the marginals agree to rounding).
+    compiled = False
+
+    @property
+    def kernels(self):
+        """The compiled extension module when :attr:`compiled` and it is installed, else
+        None (looked up, not stored: a state stays picklable)."""
+        if not self.compiled:
+            return None
+        from vislam.core import kernels  # (that module builds on this one)
+
+        return kernels._ekf
 
     def __init__(self, imu_T_world: np.ndarray, pose_covariance: np.ndarray, capacity_landmarks: int = 64,
                  lm_dim: int = LM_DIM, inverse_depth: bool = False, bias_covariance: np.ndarray | None = None):
@@ -223,8 +233,9 @@ class SlamState:
         keep_slot[slots] = False
         keep_rows = np.concatenate([np.arange(self.core_dim), self.landmark_rows(np.nonzero(keep_slot)[0]).ravel()])
         n = self.dim
-        if self.kernels is not None:
-            self.kernels.compact(self._buffer, n, self.capacity, keep_rows)  # Σ' = Σ[keep, keep] in place
+        compiled = self.kernels
+        if compiled is not None:
+            compiled.compact(self._buffer, n, self.capacity, keep_rows)  # Σ' = Σ[keep, keep] in place
         else:
             self._compact(keep_rows, n)
         self.landmark_ids = self.landmark_ids[keep_slot]
@@ -272,10 +283,11 @@ class SlamState:
         ``slots``: :attr:`p_lm_in_world` of those slots and, with inverse depth,
         J Σ_λ Jᵀ with J = dp/dλ at the mean — one conversion of those slots only."""
         slots = np.asarray(slots, dtype=np.int64)
-        if self.kernels is not None and self.lm_dim == 3:
+        compiled = self.kernels
+        if compiled is not None and self.lm_dim == 3:
             k = slots.size
             p, cov = np.empty((k, 3)), np.empty((k, 3, 3))
-            self.kernels.marginals(self.lm_mean, self.world_T_anchor if self.inverse_depth else None, self._buffer,
+            compiled.marginals(self.lm_mean, self.world_T_anchor if self.inverse_depth else None, self._buffer,
                                    self.dim, self.capacity, self.core_dim, np.ascontiguousarray(slots), p, cov)
             return p, cov
         cov = self.param_cov(slots)
