@@ -176,6 +176,43 @@ def test_closing_an_unused_helper_ends_it(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("deliver", ["signal", "interrupt_main"])
+def test_an_interrupt_while_the_helper_starts_leaves_no_helper_behind(monkeypatch, deliver):
+    """Ctrl-C that lands inside Popen, after the fork (a signal, or the launcher's
+    interrupt held back during an import and delivered by ``_thread.interrupt_main``): the
+    interrupt is raised once the helper is known, so that closing ends it (it was left
+    running, unreferenced, until its own import finished)."""
+    import _thread
+    import signal
+    import subprocess
+
+    from vislam.tools import figure_process
+
+    real = subprocess.Popen
+    started = []
+
+    def popen(*args, **kwargs):
+        proc = real(*args, **kwargs)
+        started.append(proc)
+        signal.raise_signal(signal.SIGINT) if deliver == "signal" else _thread.interrupt_main()
+        return proc
+
+    monkeypatch.setattr(figure_process.subprocess, "Popen", popen)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    helper = FigureProcess()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            helper.start(only_if_useful=False)
+        assert helper._proc is started[0]
+    finally:
+        helper.close()
+        signal.signal(signal.SIGINT, previous)
+        for proc in started:
+            proc.kill()
+            proc.wait()
+    assert helper._proc is None and started[0].returncode is not None
+
+
 def test_the_helper_starts_only_where_it_saves_time(call, tmp_path):
     """Where matplotlib is imported already (here: by this test) there is no helper, and
     the figure is drawn here all the same."""

@@ -24,6 +24,7 @@ handles the interrupt and ends the helper, as it does when it has no figure to d
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
@@ -66,13 +67,17 @@ class FigureProcess:
         package_root = str(Path(__file__).resolve().parents[2])  # the folder that holds vislam/
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
-        try:
-            self._proc = subprocess.Popen([sys.executable, "-m", "vislam.tools.figure_process"],
-                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                          env=env)
-        except OSError as exc:  # e.g. no process can be created: draw here
-            logger.debug("no figure helper process: %s", exc)
-            return False
+        # Ctrl-C is held back while the process is created: an interrupt raised inside Popen,
+        # after the fork, would leave a helper that nothing ends (Popen never returned it);
+        # held back, it is delivered just after, with the helper known (and ended by close())
+        with _sigint_held():
+            try:
+                self._proc = subprocess.Popen([sys.executable, "-m", "vislam.tools.figure_process"],
+                                              stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                              stderr=subprocess.DEVNULL, env=env)
+            except OSError as exc:  # e.g. no process can be created: draw here
+                logger.debug("no figure helper process: %s", exc)
+                return False
         return True
 
     def __enter__(self) -> FigureProcess:
@@ -261,6 +266,29 @@ def _decode_call(z, i: int, call: dict) -> tuple[str, tuple]:
         landmarks = _Landmarks(z[f"{prefix}p_lm_in_world"], z[f"{prefix}status"]) if call["landmarks"] else None
         return _MAP, (call["path"], curves, landmarks, call["title"], call["subtitle"])
     return _ERROR, (_decode_error_data(z, call["data"]), call["path"], call["title"])
+
+
+@contextlib.contextmanager
+def _sigint_held():
+    """SIGINT's Python handler is replaced by one that only notes the interrupt (a signal,
+    or ``_thread.interrupt_main``, which the launcher uses to deliver an interrupt it held
+    back during an import), and the interrupt is delivered to the previous handler when
+    the block is left. Only in the main thread (where handlers live); elsewhere a no-op."""
+    noted = []
+    try:
+        previous = signal.signal(signal.SIGINT, lambda signum, frame: noted.append(signum))
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if noted:
+            if callable(previous):
+                previous(signal.SIGINT, None)
+            elif previous == signal.SIG_DFL:
+                raise KeyboardInterrupt
 
 
 # ----------------------------------------------------------------------------- the helper
