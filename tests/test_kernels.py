@@ -332,10 +332,29 @@ def test_the_filter_takes_the_kernels_where_they_cover_its_state(drive, monkeypa
 
 
 @needs_kernels
-def test_the_update_of_the_filter_is_the_ops_update(drive):
-    """The iterated update and the plain update go through the same arithmetic object."""
-    f = SlamFilter(drive.sequence.calibration)
-    assert f._update == f._ops.update
+@pytest.mark.parametrize("iterations", [1, 4])
+def test_the_update_of_the_filter_is_the_ops_update(drive, iterations):
+    """The plain and the iterated update go through the filter's arithmetic object: with
+    its ``update`` counted, every update the run records is one of its calls; with it
+    failing, the run fails there."""
+    f = SlamFilter(drive.sequence.calibration, vislam.FilterOptions(update_iterations=iterations))
+    real, calls = f._ops.update, []
+    f._ops.update = lambda *a, **k: calls.append(1) or real(*a, **k)
+    frames = list(drive.sequence.frames())
+    for fr in frames:
+        f.step(fr)
+    assert calls
+    if iterations > 1:
+        assert len(calls) == sum(f.diagnostics.update_counts)
+    g = SlamFilter(drive.sequence.calibration, vislam.FilterOptions(update_iterations=iterations))
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("the ops update")
+
+    g._ops.update = failing
+    with pytest.raises(RuntimeError, match="the ops update"):
+        for fr in frames:
+            g.step(fr)
     assert updaters.slam_update_iterated.__defaults__[-1] is None  # ops: numpy unless given
 
 

@@ -522,7 +522,6 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         self._init_history(bias_log=self._imu_bias_model is not None)
         #: The per-frame arithmetic: compiled kernels or the numpy reference (vislam.core.kernels).
         self._ops = kernels.ops_for(self._state, reference, drift=self._drift_gate < np.inf)
-        self._update = self._ops.update
         #: The stalled-track remap of :meth:`step` (None with ``stalled_tracks: keep``).
         self._stall_buffer = StallRemapBuffer(opts.stall_max_delay_frames, calibration.camera) \
             if opts.remaps_stalled_tracks else None
@@ -761,11 +760,11 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
             Ht, Lt = ops.residual_model(blocks, Hp, Hl, V)
         if self._iterations > 1 and joint.any():
             correction = slam_update_iterated(state, self._model, slots[joint], z[joint], V, N_pose,
-                                              self._iterations, self._update, opts.update_iteration_tolerance,
+                                              self._iterations, ops.update, opts.update_iteration_tolerance,
                                               self.diagnostics.update_counts, (r[joint], Hp[joint], Hl[joint]),
                                               self._first_step_test, ops)
         else:
-            correction = self._update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
+            correction = ops.update(state, slots[joint], r[joint], Hp[joint], Hl[joint], V)
         if drift and ok.any():
             ok = self._drift_test(rows, ok, r, Ht, Lt, correction)
         probe = ok & young

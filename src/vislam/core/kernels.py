@@ -39,7 +39,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from vislam.core import propagation, updaters
+from vislam.core import dense, propagation, updaters
 from vislam.core.state import POSE_DIM
 
 logger = logging.getLogger(__name__)
@@ -179,8 +179,6 @@ class NumpyOps:
     def drift_sums(Lt, Ht, r, correction, ok, rows, drift_sum, drift_n, gate):
         """The drift test's sums (see :meth:`vislam.core.filters.SlamFilter._drift_test`):
         returns the (k,) mask of the landmarks that drift."""
-        from vislam.core import dense
-
         w = dense.solve(Lt, (r - Ht @ correction)[:, :, None])[:, :, 0]
         drift_sum[rows] += np.where(ok[:, None], w, 0.0)
         drift_n[rows] += ok
@@ -263,12 +261,8 @@ class KernelOps:
         k = len(slots)
         if k == 0:
             return np.zeros(POSE_DIM)
-        var = V.diagonal()
-        compress = V[1, 1] == V[3, 3] and not np.count_nonzero(V - np.diag(var))
-        if compress:
-            var = np.array([var[0], 0.5 * var[1], var[2]])
-        else:
-            var = np.ascontiguousarray(var)
+        compress, var = updaters.stereo_row_variances(V)  # the rows of compress_stereo
+        var = np.ascontiguousarray(var)
         n = state.dim
         m = (3 if compress else 4) * k
         T_out, lm_out = np.empty((4, 4)), np.empty_like(state.lm_mean)
@@ -302,10 +296,7 @@ class KernelOps:
 
     @staticmethod
     def restore_prior(state, mu0, b0, lm0, v0, P0, factors) -> None:
-        state.imu_T_world = mu0.copy()
-        state.imu_bias = b0.copy()
-        state.lm_mean = lm0.copy()
-        state.v_lm_in_world = v0.copy()
+        updaters._restore_means(state, mu0, b0, lm0, v0)
         if P0 is None:
             Bt = factors["Bt"]
             _ekf.restore(state._buffer, state.dim, state.capacity, Bt, Bt.shape[1])  # Σ₀ = Σ + K S Kᵀ

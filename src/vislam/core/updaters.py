@@ -320,8 +320,8 @@ def compress_stereo(r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray
     likelihood up to a constant, hence the same EKF update, with 3k instead of 4k rows.
     Returns (r3, Hp3, Hl3, var3).
     """
-    var = V.diagonal()  # (a read-only view, as np.diag(V) gives, without its dispatch)
-    if V[1, 1] != V[3, 3] or np.count_nonzero(V - np.diag(var)):
+    compressed, var = stereo_row_variances(V)
+    if not compressed:
         return r, Hp, Hl, var  # not applicable: keep the four rows
     r3 = r[:, :3].copy()
     r3[:, 1] = 0.5 * (r[:, 1] + r[:, 3])
@@ -329,7 +329,17 @@ def compress_stereo(r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray, V: np.ndarray
     Hp3[:, 1] = 0.5 * (Hp[:, 1] + Hp[:, 3])
     Hl3 = Hl[:, :3].copy()
     Hl3[:, 1] = 0.5 * (Hl[:, 1] + Hl[:, 3])
-    return r3, Hp3, Hl3, np.array([var[0], 0.5 * var[1], var[2]])
+    return r3, Hp3, Hl3, var
+
+
+def stereo_row_variances(V: np.ndarray) -> tuple[bool, np.ndarray]:
+    """(whether :func:`compress_stereo` folds the vL/vR rows for the noise V — diagonal,
+    with equal row variances — and the noise variance of each row of the update: uL,
+    (vL + vR)/2, uR when folded, else V's diagonal, the four rows)."""
+    var = V.diagonal()  # (a read-only view, as np.diag(V) gives, without its dispatch)
+    if V[1, 1] != V[3, 3] or np.count_nonzero(V - np.diag(var)):
+        return False, var
+    return True, np.array([var[0], 0.5 * var[1], var[2]])
 
 
 def slam_update(state: SlamState, slots: np.ndarray, r: np.ndarray, Hp: np.ndarray, Hl: np.ndarray,
@@ -430,13 +440,18 @@ def _relinearized_residual(state: SlamState, slots: np.ndarray, r: np.ndarray, H
     return r - Hp @ se3_log(mu0 @ se3_inverse(state.imu_T_world)) - np.einsum("kij,kj->ki", Hl, d)
 
 
-def _restore_prior(state: SlamState, mu0, b0, lm0, v0, P0, factors) -> None:
-    """Back to the prior x₀, Σ₀ before a re-linearized update (Σ₀ kept in ``P0``, or
-    restored from the last gain's factors when ``P0`` is None)."""
+def _restore_means(state: SlamState, mu0, b0, lm0, v0) -> None:
+    """The prior's means x₀ back into the state (copies: the update replaces or moves them)."""
     state.imu_T_world = mu0.copy()
     state.imu_bias = b0.copy()
     state.lm_mean = lm0.copy()
     state.v_lm_in_world = v0.copy()
+
+
+def _restore_prior(state: SlamState, mu0, b0, lm0, v0, P0, factors) -> None:
+    """Back to the prior x₀, Σ₀ before a re-linearized update (Σ₀ kept in ``P0``, or
+    restored from the last gain's factors when ``P0`` is None)."""
+    _restore_means(state, mu0, b0, lm0, v0)
     if P0 is None:
         P, B = state.cov, factors["B"]
         P += B.T @ B  # Σ₀ = Σ + K S Kᵀ (in place)
