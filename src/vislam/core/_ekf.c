@@ -797,6 +797,18 @@ static PyObject *py_innovation(PyObject *self, PyObject *args) {
 
 /* ------------------------------------------------------------------ update */
 
+/* P (n x n of a row-major buffer, leading dimension ld) += alpha Bt Bt^T for a row-major
+ * n x m Bt: SYRK on the column-major view (Bt's memory is the m x n matrix B there, and
+ * Bt Bt^T = B^T B), which writes the column-major lower = row-major upper triangle; that
+ * triangle is then copied to the row-major lower one, so P stays exactly symmetric. */
+static void add_gram(double *P, int n, int ld, const double *Bt, int m, double alpha) {
+    char lo = 'L', tr = 'T';
+    double beta = 1.0;
+    p_dsyrk(&lo, &tr, &n, &m, &alpha, (double *)Bt, &m, &beta, P, &ld);
+    for (Py_ssize_t x = 0; x < n; x++)
+        for (Py_ssize_t y = x + 1; y < n; y++) P[y * ld + x] = P[x * ld + y];
+}
+
 /* inv (b x b, column-major) = L_bb^-1 for the lower-triangular row-major block
  * L_bb[i][j] = A[i * ld + j] (forward substitution on the identity). */
 static void lower_inverse(const double *A, int b, int ld, double *inv) {
@@ -1046,17 +1058,7 @@ static PyObject *py_update(PyObject *self, PyObject *args) {
     TMARK(7);
     bt_times(Bt, (int)n, (int)m, y, dx); /* dx = B^T y = Bt y */
     TMARK(8);
-    /* Sigma <- Sigma - Bt Bt^T: SYRK on the column-major view (B is m x n there), then mirror */
-    {
-        char lo = 'L', tr = 'T';
-        int N_ = (int)n, K_ = (int)m, lda = (int)m, ldc = (int)ld;
-        double alpha = -1.0, beta = 1.0;
-        p_dsyrk(&lo, &tr, &N_, &K_, &alpha, Bt, &lda, &beta, P, &ldc);
-        TMARK(9);
-        /* column-major lower = row-major upper: copy it to the row-major lower */
-        for (Py_ssize_t x = 0; x < n; x++)
-            for (Py_ssize_t y2 = x + 1; y2 < n; y2++) P[y2 * ld + x] = P[x * ld + y2];
-    }
+    add_gram(P, (int)n, (int)ld, Bt, (int)m, -1.0); /* Sigma <- Sigma - Bt Bt^T */
     TMARK(10);
     /* the means: mu <- exp(dx_pose^) mu, m <- m + dx_lm */
     double E[16];
@@ -1085,12 +1087,7 @@ static PyObject *py_restore(PyObject *self, PyObject *args) {
         release_all(&bufs);
         return NULL;
     }
-    char lo = 'L', tr = 'T';
-    int N_ = (int)n, K_ = (int)m, lda = (int)m, ldc = (int)ld;
-    double alpha = 1.0, beta = 1.0;
-    p_dsyrk(&lo, &tr, &N_, &K_, &alpha, (double *)Bt, &lda, &beta, P, &ldc);
-    for (Py_ssize_t x = 0; x < n; x++)
-        for (Py_ssize_t y = x + 1; y < n; y++) P[y * ld + x] = P[x * ld + y];
+    add_gram(P, (int)n, (int)ld, Bt, (int)m, 1.0); /* Sigma_0 = Sigma + Bt Bt^T */
     release_all(&bufs);
     Py_RETURN_NONE;
 }
