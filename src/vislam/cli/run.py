@@ -179,7 +179,8 @@ def _run(args, figures) -> int:
     from vislam.core.estimators import run as run_estimator
     from vislam.core.results import run_warnings
     from vislam.core.sequence import imu_sample_warnings
-    from vislam.tools.comparison import evaluate_run, injected_noise_record, stage_evaluation
+    from vislam.tools.comparison import evaluate_run, ground_truth_from_start, injected_noise_record, \
+        stage_evaluation
     from vislam.tools.config import load_known_poses
     from vislam.tools.outputs import OutputStage, display_name, method_title, command_start_time, write_run_outputs
 
@@ -224,7 +225,7 @@ def _run(args, figures) -> int:
             gt_poses = None
             if gt is not None:
                 evaluation = evaluate_run(result, gt, sequence)
-                gt_poses = evaluation.gt_world_T_imu  # drawn in the figure
+                gt_poses = ground_truth_from_start(evaluation)  # drawn in the figure, from the estimate's start
                 extra["evaluation"] = stage_evaluation(
                     stage.staging, evaluation, f"{display_name(dataset)} — {method_title(result)} vs ground truth",
                     plot=figures.plot_error_over_distance, ground_truth=gt_info)

@@ -62,6 +62,8 @@ __all__ = [
     "load_run_ground_truth",
     "evaluate_run",
     "evaluation_summary",
+    "ground_truth_from_start",
+    "start_anchor",
     "stage_evaluation",
     "describe_noise",
     "injected_noise_record",
@@ -187,6 +189,29 @@ def evaluate_run(result: RunResult, ground_truth: TrajectoryFile, sequence: Sequ
     info.update(ground_truth_frame="cam", cam_T_imu_source=source, cam_T_imu=np.asarray(cam_T_imu).tolist())
     return evaluate_associated(est, ground_truth.camera_file(), sequence.timestamps_s, max_diff_s,
                                cam_T_imu=cam_T_imu, info=info)
+
+
+def start_anchor(evaluation: EvaluationResult) -> np.ndarray:
+    """(4, 4) the rigid transform ``est[0] gt[0]⁻¹`` of an evaluation's first pose pair: it
+    takes the ground truth's world frame into the estimate's so that both start at the same
+    pose (the identity when the ground truth already starts at the estimate's first pose,
+    as KITTI's and the simulator's do)."""
+    from vislam.core.lie import se3_inverse
+
+    return evaluation.est_world_T_imu[0] @ se3_inverse(evaluation.gt_world_T_imu[0])
+
+
+def ground_truth_from_start(evaluation: EvaluationResult, poses: np.ndarray | None = None) -> np.ndarray:
+    """The ground truth drawn beside an estimate: ``poses`` (default: the evaluation's own
+    ground-truth poses), world_T_imu in the ground truth's world frame, moved by
+    :func:`start_anchor` into the estimate's world frame from the same start pose. A ground
+    truth recorded in another world frame (a motion-capture room, a map's east-north-up
+    frame) is then drawn where the estimate is; the figure does not align it in SE(3) as
+    the ATE does (its side view says so)."""
+    gt = evaluation.gt_world_T_imu if poses is None else np.asarray(poses, dtype=np.float64)
+    if gt.shape[0] == 0 or evaluation.gt_world_T_imu.shape[0] == 0:
+        return gt
+    return start_anchor(evaluation) @ gt
 
 
 def evaluation_summary(evaluation: EvaluationResult, **extra) -> dict[str, Any]:
@@ -403,7 +428,9 @@ class Comparison:
         return imu_sample_warnings(seq.linear_velocity_in_imu_mps, seq.angular_velocity_in_imu_radps)
 
     def ground_truth_poses(self) -> np.ndarray | None:
-        """The ground-truth poses of the dataset's frames (for drawing), or None."""
+        """The ground-truth poses of the dataset's frames (for drawing), or None: in the
+        estimates' world frame from their start pose (:func:`ground_truth_from_start` with
+        the first method's evaluation; the methods share their start pose)."""
         if self.ground_truth is None:
             return None
         gt = self.ground_truth
@@ -413,10 +440,13 @@ class Comparison:
 
             poses = camera_to_imu_trajectory(gt.world_T_cam, self.sequence.cam_T_imu)
         if gt.timestamps_s is None:
-            return poses[: self.sequence.n_frames]
-        keep = (gt.timestamps_s >= self.sequence.timestamps_s[0] - DEFAULT_MAX_DIFF_S) & \
-               (gt.timestamps_s <= self.sequence.timestamps_s[-1] + DEFAULT_MAX_DIFF_S)
-        return poses[keep]
+            poses = poses[: self.sequence.n_frames]
+        else:
+            keep = (gt.timestamps_s >= self.sequence.timestamps_s[0] - DEFAULT_MAX_DIFF_S) & \
+                   (gt.timestamps_s <= self.sequence.timestamps_s[-1] + DEFAULT_MAX_DIFF_S)
+            poses = poses[keep]
+        evaluation = next((m.evaluation for m in self.methods.values() if m.evaluation is not None), None)
+        return poses if evaluation is None else ground_truth_from_start(evaluation, poses)
 
     def to_dict(self) -> dict[str, Any]:
         from vislam import __version__
@@ -613,7 +643,7 @@ def write_comparison(directory, comparison: Comparison, start_time: float | None
             summaries[key] = write_run_outputs(stage, m.result, dataset=dataset,
                                                duration_s=comparison.sequence.duration_s, start_time=start_time,
                                                extra=extra, ground_truth=None if m.evaluation is None
-                                               else m.evaluation.gt_world_T_imu,
+                                               else ground_truth_from_start(m.evaluation),
                                                figure=run_figures is None or f"{key}/{FIGURE}" in run_figures)
     view = plot_comparison(comparison, directory / COMPARISON_FIGURE)
     content = comparison.to_dict()

@@ -708,7 +708,7 @@ def write_run_outputs(stage: OutputStage, result: RunResult, *, dataset: Mapping
         curves[-1] = TrajectoryCurve(result.world_T_imu, "refined" if result.options.refine else "final (smoothed)")
     if ground_truth is not None and len(ground_truth):
         curves.insert(0, TrajectoryCurve(np.asarray(ground_truth), "ground truth", color="0.25", linewidth=3.2,
-                                         zorder=2, mark_ends=False))
+                                         zorder=2, mark_ends=False, ground_truth=True))
     view = _write_common(stage, result, name, curves, None,
                          [f"vislam landmarks of {name} ({result.mode})"], plot, figure)
     extra = {**(extra or {}), "landmarks_outside_figure": None if view is None else view["landmarks_outside_view"]}
