@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from vislam.cli.common import TRACKER_FLAGS, add_source_arguments, tracker_options_from_args  # noqa: F401
-from vislam.errors import ConfigError
+from vislam.errors import ConfigError, OutputError
 
 __all__ = ["register", "run", "tracker_options_from_args", "format_stats"]
 
@@ -67,6 +67,11 @@ def run(args) -> int:
         raise ConfigError(f"--out {out}: expected a file name ending in .npz")
     if out.is_dir():
         raise ConfigError(f"--out {out}: is a directory; expected a file name ending in .npz")
+    for folder in (out.parent, *out.parent.parents):  # before the tracking, not after it
+        if folder.exists():
+            if not folder.is_dir():
+                raise OutputError(f"--out {out}: {folder} is a file; expected a directory to write {out.name} into")
+            break
     config = args.config or getattr(args, "tracker_config", None)
     options = tracker_options_from_args(config, {f: getattr(args, d, None) for d, f in TRACKER_FLAGS.items()})
     source = open_stereo_source(args.source, pair=args.pair, velocities=args.velocities)

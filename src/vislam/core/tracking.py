@@ -242,6 +242,17 @@ class TrackerOptions:
         if self.ransac_min_points < 4:
             raise ConfigError(f"ransac_min_points must be >= 4 (P3P + 1), got {self.ransac_min_points}")
 
+    def min_image_size_px(self) -> tuple[int, int]:
+        """The smallest (width, height) of a rectified image in which a corner can be detected:
+        the region ``border_px`` from the border and outside the ``side_band_fraction`` bands must
+        hold a Shi-Tomasi block and an affine template. A smaller image can give no track."""
+        k = max(self.block_size_px, 2 * self.affine_radius_px + 1)
+        height = 2 * self.border_px + k
+        width = height
+        while width - 2 * max(self.border_px, int(round(self.side_band_fraction * width))) < k:
+            width += 1  # side_band_fraction < 0.4: ends within k / 0.2 steps
+        return width, height
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 

@@ -47,8 +47,17 @@ message saying so (never zeros in silence).
 A velocity CSV (EuRoC's ``velocities=``) has the same columns, a header line allowed,
 and is linearly interpolated at the image times (it must cover them).
 
+Images: any format OpenCV decodes, grey or colour (read as grey), 8 or 16 bits (16-bit
+images scaled to 8 bits by one factor for the whole recording, from the bit depth of the
+first left image: 12-bit data by 255/4095). Image files of a folder are ordered by name with
+the numbers in it compared as numbers (``2.png`` before ``10.png``; zero-padded names sort
+as usual).
+
 Every problem with a folder is a :class:`~vislam.errors.DatasetError` naming the file
 and what was expected; nothing is written before the whole recording has been tracked.
+A right image identical to its left one, fewer pairs than ``min_track_length`` and images
+too small for the detector are refused; a first pair that matches far better with left
+and right exchanged is a warning of the statistics.
 """
 
 from __future__ import annotations
@@ -58,7 +67,9 @@ import hashlib
 import json
 import logging
 import math
+import re
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +90,9 @@ logger = logging.getLogger(__name__)
 
 LAYOUTS = ("kitti-raw", "euroc", "folder")
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".ppm", ".bmp", ".tif", ".tiff")
+#: Largest image side a calibration may state (px): beyond any camera; rectification maps of
+#: a 2e6 px square asked OpenCV for 16 TB.
+_MAX_IMAGE_SIDE_PX = 100_000
 _LAYOUT_HELP = ("expected a KITTI raw drive folder (image_00/, image_01/, oxts/; calib_*.txt one level up), "
                 "an EuRoC/ASL folder (mav0/cam0, mav0/cam1) or a folder with left/, right/, calibration.yaml "
                 "and velocities.csv")
@@ -123,31 +137,57 @@ class StereoSource:
     def n_frames(self) -> int:
         return len(self.left_files)
 
-    def read_pair(self, t: int) -> tuple[np.ndarray, np.ndarray]:
-        """The rectified grey (uint8) pair of frame ``t``; DatasetError for an unreadable image."""
+    def read_pair(self, t: int, exchanged: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The rectified grey (uint8) pair of frame ``t``; DatasetError for an unreadable image,
+        one of another size or bit depth than the recording's, or a right image identical to
+        its left one.
+
+        16-bit images are scaled to 8 bits by one factor for the whole recording, from the
+        bit depth of frame 0's left image (its largest value: 12-bit data in a 16-bit PNG
+        is scaled by 255/4095), so the grey levels of a point agree between frames and
+        between the two cameras. ``exchanged``: the right file as the left image and the left
+        file as the right one (each rectified as the other camera), to test whether the
+        folders are swapped."""
         from vislam.core.tracking import require_cv2
 
         cv2 = require_cv2()
+        files = (self.right_files[t], self.left_files[t]) if exchanged else (self.left_files[t], self.right_files[t])
         out = []
-        for path in (self.left_files[t], self.right_files[t]):
-            image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            if image is None:
-                raise DatasetError(f"{path}: cannot be read as an image; expected a readable PNG/JPEG image "
-                                   f"({self.image_size_px[0]}x{self.image_size_px[1]} px)")
+        for path in files:
+            image = _read_grey(cv2, path, self.image_size_px)
             if image.dtype != np.uint8:
-                image = cv2.convertScaleAbs(image, alpha=255.0 / max(1.0, float(image.max())))
+                dtype, scale = self._depth
+                if image.dtype != dtype:
+                    raise DatasetError(f"{path}: has {image.dtype} pixels, {self.left_files[0]} {dtype}; expected "
+                                       f"one bit depth for every image of the recording")
+                image = cv2.convertScaleAbs(image, alpha=scale)
             if self.rectify_maps is None and (image.shape[1], image.shape[0]) != tuple(self.image_size_px):
                 raise DatasetError(f"{path}: is {image.shape[1]}x{image.shape[0]} px; expected "
                                    f"{self.image_size_px[0]}x{self.image_size_px[1]} px like the calibration")
             out.append(image)
+        if out[0].shape == out[1].shape and np.array_equal(out[0], out[1]) and out[0].max() > out[0].min():
+            raise DatasetError(f"{self.right_files[t]}: is the same image as {self.left_files[t]}; expected the "
+                               f"right camera's view of the pair (identical images have zero disparity, no depth)")
         if self.rectify_maps is not None:
             expected = self.extra.get("raw_size_px")
-            for path, image in zip((self.left_files[t], self.right_files[t]), out):
+            for path, image in zip(files, out):
                 if expected and (image.shape[1], image.shape[0]) != tuple(expected):
                     raise DatasetError(f"{path}: is {image.shape[1]}x{image.shape[0]} px; expected "
                                        f"{expected[0]}x{expected[1]} px (sensor.yaml resolution)")
             out = [cv2.remap(im, m[0], m[1], cv2.INTER_LINEAR) for im, m in zip(out, self.rectify_maps)]
         return out[0], out[1]
+
+    @cached_property
+    def _depth(self) -> tuple:
+        """(dtype, factor to 8 bits) of the recording's 16-bit images, from frame 0's left image."""
+        from vislam.core.tracking import require_cv2
+
+        cv2 = require_cv2()
+        first = _read_grey(cv2, self.left_files[0])
+        if first.dtype == np.uint8:
+            return np.dtype(np.uint8), 1.0
+        bits = min(16, max(8, int(first.max()).bit_length()))
+        return first.dtype, 255.0 / (2 ** bits - 1)
 
     def fingerprint(self) -> str:
         """A digest of every input (file names, sizes and modification times) — the cache key."""
@@ -164,9 +204,49 @@ class StereoSource:
 # ----------------------------------------------------------------------------- helpers
 
 
+def _read_grey(cv2, path, size_px=None) -> np.ndarray:
+    """One image as grey pixels of its own bit depth (uint8 or uint16); DatasetError naming
+    the file for one that cannot be decoded or has floating-point pixels. ``size_px``: the
+    (width, height) expected, for the messages."""
+    expected = f" ({size_px[0]}x{size_px[1]} px)" if size_px else ""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot be read ({exc.strerror or exc}); expected a readable PNG/JPEG "
+                           f"image{expected}") from None
+    if data.startswith(_PNG_SIGNATURE) and _PNG_END not in data:
+        # a cut-off PNG (an interrupted copy): said here, before libpng prints its own line on stderr
+        raise DatasetError(f"{path}: is a truncated PNG ({len(data)} bytes, no IEND chunk); expected a complete "
+                           f"image{expected}")
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)  # OpenCV's decoder warnings: our one line
+    try:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH) \
+            if data else None
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+    if image is None:
+        raise DatasetError(f"{path}: cannot be read as an image; expected a readable PNG/JPEG image{expected}")
+    if image.dtype not in (np.uint8, np.uint16):
+        raise DatasetError(f"{path}: has {image.dtype} pixels; expected an 8- or 16-bit grey or colour image")
+    return image
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND\xaeB`\x82"  # the last chunk of every PNG, with its CRC
+
+
+def _natural_key(path: Path):
+    """Sort key of a file name with its digit runs compared as numbers: 2.png before 10.png
+    (the same order as plain sorting for zero-padded names)."""
+    parts = re.split(r"([0-9]+)", path.name)
+    return [(0, int(p), "") if "0" <= p[0] <= "9" else (1, 0, p) for p in parts if p], path.name
+
+
 def _images_in(folder: Path) -> list[Path]:
     try:
-        return sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES and p.is_file())
+        return sorted((p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES and p.is_file()),
+                      key=_natural_key)
     except OSError as exc:
         raise DatasetError(f"{folder}: cannot be listed ({exc.strerror or exc})") from None
 
@@ -175,7 +255,7 @@ def _read_text(path: Path, what: str) -> str:
     if not path.is_file():
         raise DatasetError(f"{path}: missing; expected {what}")
     try:
-        return path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8-sig")  # a byte-order mark (spreadsheet exports) is not data
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: cannot be read ({exc}); expected {what}") from None
 
@@ -186,6 +266,14 @@ def _check_counts(left: list, right: list, left_dir: Path, right_dir: Path) -> N
     if len(left) != len(right):
         raise DatasetError(f"{right_dir}: holds {len(right)} images, {left_dir} {len(left)}; expected one right "
                            f"image per left image")
+    # pairs are taken in order: with the same names on both sides, the order must pair equal names
+    # (a frame missing on each side, a different one, paired every later frame with its neighbour)
+    left_names, right_names = [p.name for p in left], [p.name for p in right]
+    if left_names != right_names and set(left_names) & set(right_names):
+        k = next(i for i, (a, b) in enumerate(zip(left_names, right_names)) if a != b)
+        raise DatasetError(f"{right[k]}: would be paired with {left[k]} (frame {k} of each folder in name order); "
+                           f"expected the same file names in {left_dir} and {right_dir}, one right image per left "
+                           f"image")
 
 
 def _check_times(t: np.ndarray, path: Path) -> None:
@@ -278,6 +366,9 @@ def read_kitti_calibration(date_dir, pair: str = "grey") -> dict:
     P_r = _kitti_get(kc, c2c, f"P_rect_{right}", 12).reshape(3, 4)
     R_rect = _kitti_get(kc, c2c, "R_rect_00", 9).reshape(3, 3)
     size = _kitti_get(kc, c2c, f"S_rect_{left}", 2) if f"S_rect_{left}" in kc else None
+    if size is not None and not np.all((size >= 1) & (size <= _MAX_IMAGE_SIDE_PX) & (size == np.round(size))):
+        raise DatasetError(f"{c2c}: key 'S_rect_{left}' is {' '.join(f'{v:g}' for v in size)}; expected the width "
+                           f"and height in whole pixels, 1 to {_MAX_IMAGE_SIDE_PX}")
     K = P_l[:, :3].copy()
     fx = K[0, 0]
     if not (fx > 0 and K[1, 1] > 0 and abs(K[2, 2] - 1) < 1e-9):
@@ -332,8 +423,10 @@ def parse_kitti_timestamps(path: Path) -> np.ndarray:
 def _interpolate(t_src: np.ndarray, values: np.ndarray, t: np.ndarray, path: Path) -> np.ndarray:
     slack = 0.5 * float(np.median(np.diff(t))) if t.size > 1 else 0.05
     if t[0] < t_src[0] - slack or t[-1] > t_src[-1] + slack:
+        unit = ("; its times look like nanoseconds, expected seconds" if abs(t_src[0]) > 1e6 * max(abs(t[0]), 1.0)
+                else "")
         raise DatasetError(f"{path}: covers {t_src[0]:.3f}-{t_src[-1]:.3f} s; expected it to cover the image times "
-                           f"{t[0]:.3f}-{t[-1]:.3f} s")
+                           f"{t[0]:.3f}-{t[-1]:.3f} s{unit}")
     return np.stack([np.interp(t, t_src, values[:, i]) for i in range(values.shape[1])], axis=1)
 
 
@@ -356,6 +449,8 @@ def _open_kitti(drive: Path, pair: str) -> StereoSource:
     if not odir.is_dir():
         raise DatasetError(f"{odir}: missing; expected the OXTS packets (one .txt per frame)")
     packets = sorted(p for p in odir.iterdir() if p.suffix == ".txt")
+    if not packets:
+        raise DatasetError(f"{odir}: holds no OXTS packets; expected one .txt per frame")
     to = parse_kitti_timestamps(drive / "oxts" / "timestamps.txt")
     if to.size != len(packets):
         raise DatasetError(f"{drive / 'oxts' / 'timestamps.txt'}: has {to.size} time stamps; expected one per packet "
@@ -370,12 +465,11 @@ def _open_kitti(drive: Path, pair: str) -> StereoSource:
         rows.append(velocity)
     velocities = _interpolate(to, np.array(rows), tl, drive / "oxts" / "timestamps.txt")
     size = calib["image_size_px"]
-    if size is None:
-        import struct
+    if size is None:  # no S_rect line: the first image's size
+        from vislam.core.tracking import require_cv2
 
-        with open(left[0], "rb") as fh:  # PNG header: width, height
-            head = fh.read(24)
-        size = struct.unpack(">II", head[16:24]) if head[:8] == b"\x89PNG\r\n\x1a\n" else None
+        first = _read_grey(require_cv2(), left[0])
+        size = (first.shape[1], first.shape[0])
     return StereoSource(
         name=drive.name, root=drive, layout="kitti-raw", left_files=tuple(left), right_files=tuple(right),
         timestamps_s=tl, K=calib["K"], baseline_m=calib["baseline_m"], cam_T_imu=calib["cam_T_imu"],
@@ -410,12 +504,19 @@ def _yaml_numbers(doc, path: Path, key: str, n: int) -> np.ndarray:
     if isinstance(value, dict) and "data" in value:
         value = value["data"]
     try:
-        arr = np.array(value, dtype=np.float64).ravel()
+        arr = None if _holds_bool(value) else np.array(value, dtype=np.float64).ravel()  # true is not 1.0
     except (TypeError, ValueError):
         arr = None
     if value is None or arr is None or arr.size != n or not np.all(np.isfinite(arr)):
         raise DatasetError(f"{path}: key '{key}' is {value!r:.60}; expected {_numbers(n)}")
     return arr
+
+
+def _holds_bool(value) -> bool:
+    """Whether a YAML value is or holds a boolean (``true`` would otherwise be read as 1.0)."""
+    if isinstance(value, (bool, np.bool_)):
+        return True
+    return isinstance(value, (list, tuple)) and any(_holds_bool(v) for v in value)
 
 
 def _euroc_camera(cam_dir: Path):
@@ -436,10 +537,13 @@ def _euroc_camera(cam_dir: Path):
         raise DatasetError(f"{yaml_path}: key 'intrinsics' {problem}")
     D = _yaml_numbers(doc, yaml_path, "distortion_coefficients", 4)
     resolution = _yaml_numbers(doc, yaml_path, "resolution", 2)
-    if not np.all((resolution >= 1) & (resolution == np.round(resolution))):
+    if not np.all((resolution >= 1) & (resolution <= _MAX_IMAGE_SIDE_PX) & (resolution == np.round(resolution))):
         raise DatasetError(f"{yaml_path}: key 'resolution' is {resolution.tolist()}; expected [width, height] in "
-                           "whole pixels >= 1")
+                           f"whole pixels, 1 to {_MAX_IMAGE_SIDE_PX}")
     size = tuple(int(v) for v in resolution)
+    if not (0 <= cu <= size[0] and 0 <= cv <= size[1]):  # a principal point off the sensor rectifies to nothing
+        raise DatasetError(f"{yaml_path}: key 'intrinsics' has principal point (cu, cv) = ({cu:g}, {cv:g}) px; "
+                           f"expected it inside the {size[0]}x{size[1]} px image (key 'resolution')")
     body_T_cam = _yaml_numbers(doc, yaml_path, "T_BS", 16).reshape(4, 4)
     if not is_rigid_transform(body_T_cam, tol=1e-5):
         raise DatasetError(f"{yaml_path}: key 'T_BS' is not a rigid transform; expected a 4x4 body_T_sensor")
@@ -452,15 +556,25 @@ def _euroc_camera(cam_dir: Path):
         if not line or line.startswith("#"):
             continue
         parts = [p.strip() for p in line.split(",")]
-        if len(parts) != 2 or not parts[0].isdigit():
-            raise DatasetError(f"{csv_path}: line {i + 1} ({line[:40]!r}) is not 'timestamp_ns,filename'")
+        if len(parts) != 2 or not _NS_STAMP.fullmatch(parts[0]) or int(parts[0]) > _INT64_MAX:
+            raise DatasetError(f"{csv_path}: line {i + 1} ({line[:40]!r}) is not 'timestamp_ns,filename'; expected "
+                               f"an integer time stamp in nanoseconds (at most 19 digits) and a file name")
+        name = Path(parts[1])
+        if not parts[1] or name.is_absolute() or ".." in name.parts:
+            raise DatasetError(f"{csv_path}: line {i + 1} names file {parts[1]!r}; expected a file name inside "
+                               f"{cam_dir / 'data'}")
         stamps.append(int(parts[0]))
-        names.append(cam_dir / "data" / parts[1])
+        names.append(cam_dir / "data" / name)
     if not names:
         raise DatasetError(f"{csv_path}: lists no images; expected one 'timestamp_ns,filename' line per image")
     t = np.array(stamps, dtype=np.int64)
     _check_times(t.astype(float), csv_path)
     return K, D, size, body_T_cam, t, names, (yaml_path, csv_path)
+
+
+#: A data.csv time stamp: nanoseconds as ASCII digits that fit an int64 (EuRoC's have 19).
+_NS_STAMP = re.compile(r"[0-9]{1,19}")
+_INT64_MAX = int(np.iinfo(np.int64).max)
 
 
 def _euroc_pairs(mav0: Path, left, right, t0, t1):
@@ -477,6 +591,10 @@ def _euroc_pairs(mav0: Path, left, right, t0, t1):
     if not present0[first:last + 1].all():
         k = first + int(np.argmin(present0[first:last + 1]))
         raise DatasetError(f"{left[k]}: missing; expected the image listed in {csv0}")
+    notes = []
+    if first > 0 or last < len(left) - 1:
+        notes.append(f"{csv0}: lists {first + len(left) - 1 - last} images that are not in {mav0 / 'cam0' / 'data'} "
+                     f"(before its first or after its last image); tracked the {last + 1 - first} frames present")
     left, t0 = left[first:last + 1], t0[first:last + 1]
     j = np.searchsorted(t1, t0)
     j = np.clip(j, 0, max(t1.size - 1, 0))
@@ -493,7 +611,7 @@ def _euroc_pairs(mav0: Path, left, right, t0, t1):
             raise DatasetError(f"{p}: missing; expected the image listed in {csv1} (the partner of a cam0 image)")
     if len(set(best.tolist())) != best.size:
         raise DatasetError(f"{csv1}: pairs one right image with two left images; expected one per left image")
-    return list(left), right, t0
+    return list(left), right, t0, notes
 
 
 def read_velocity_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -543,18 +661,36 @@ def _open_euroc(mav0: Path, velocities_csv) -> StereoSource:
     if not gap > 1e-6:
         raise DatasetError(f"{yaml0} and {yaml1}: key 'T_BS' puts both cameras at the same place ({gap:.2g} m "
                            "apart); expected a stereo pair with a baseline")
-    left, right, t0 = _euroc_pairs(mav0, left, right, t0, t1)
+    left, right, t0, notes = _euroc_pairs(mav0, left, right, t0, t1)
+    for path, yaml_path in ((left[0], yaml0), (right[0], yaml1)):  # before maps of sensor.yaml's size are made
+        image = _read_grey(cv2, path, size0)
+        if (image.shape[1], image.shape[0]) != size0:
+            raise DatasetError(f"{path}: is {image.shape[1]}x{image.shape[0]} px; expected {size0[0]}x{size0[1]} px "
+                               f"({yaml_path} key 'resolution')")
     try:
         R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(K0, D0, K1, D1, size0, cam1_T_cam0[:3, :3].copy(),
                                                     cam1_T_cam0[:3, 3].reshape(3, 1).copy(),
                                                     flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
+        maps = tuple(cv2.initUndistortRectifyMap(K, D, R, P[:, :3], size0, cv2.CV_32FC1)
+                     for K, D, R, P in ((K0, D0, R1, P1), (K1, D1, R2, P2)))
     except cv2.error as exc:
         raise DatasetError(f"{yaml0} and {yaml1}: OpenCV cannot rectify this stereo pair "
                            f"({' '.join(str(exc).split())[-120:]}); expected the calibration of a stereo pair") from None
-    maps = tuple(cv2.initUndistortRectifyMap(K, D, R, P[:, :3], size0, cv2.CV_32FC1)
-                 for K, D, R, P in ((K0, D0, R1, P1), (K1, D1, R2, P2)))
     K = P1[:, :3].copy()
     baseline = -P2[0, 3] / P2[0, 0]
+    if abs(P2[1, 3]) > abs(P2[0, 3]):  # OpenCV rectifies a vertical pair along y: not a left-right pair
+        raise DatasetError(f"{yaml0} and {yaml1}: key 'T_BS' puts cam1 above or below cam0; expected a horizontal "
+                           f"stereo pair, cam1 to the right of cam0")
+    if not baseline > 0:
+        raise DatasetError(f"{yaml0} and {yaml1}: key 'T_BS' puts cam1 {abs(baseline):.3g} m to the left of cam0 "
+                           f"(along the rectified x axis); expected cam0 = the left camera and cam1 = the right one "
+                           f"(are the two sensor.yaml files swapped?)")
+    for (mx, my), yaml_path in zip(maps, (yaml0, yaml1)):
+        inside = float(np.mean((mx >= 0) & (mx <= size0[0] - 1) & (my >= 0) & (my <= size0[1] - 1)))
+        if not inside >= 0.5:  # alpha 0 keeps only valid pixels: a real calibration gives ~100 %
+            raise DatasetError(f"{yaml_path}: keys 'intrinsics' and 'distortion_coefficients' rectify to an image of "
+                               f"which {100 * inside:.0f} % lies inside the {size0[0]}x{size0[1]} px sensor; expected "
+                               f"this camera's pinhole intrinsics and radial-tangential distortion (k1 k2 p1 p2)")
     rect_T_cam0 = np.eye(4)
     rect_T_cam0[:3, :3] = R1
     cam_T_imu = rect_T_cam0 @ se3_inverse(body_T_cam0)
@@ -574,7 +710,7 @@ def _open_euroc(mav0: Path, velocities_csv) -> StereoSource:
         left_files=tuple(left), right_files=tuple(right), timestamps_s=t, K=K, baseline_m=float(baseline),
         cam_T_imu=cam_T_imu, image_size_px=size0, velocities=velocities, velocity_note=note, rectify_maps=maps,
         inputs=inputs, extra={"raw_size_px": size0, "cam1_T_cam0": cam1_T_cam0, "body_T_cam0": body_T_cam0,
-                              "rect_R_cam0": R1})
+                              "rect_R_cam0": R1, "notes": notes})
 
 
 # ----------------------------------------------------------------------------- plain folder
@@ -618,9 +754,7 @@ def _open_folder(root: Path, velocities_csv) -> StereoSource:
                            f"one row per pair")
     from vislam.core.tracking import require_cv2
 
-    first = require_cv2().imread(str(left[0]), require_cv2().IMREAD_GRAYSCALE)
-    if first is None:
-        raise DatasetError(f"{left[0]}: cannot be read as an image; expected a readable PNG/JPEG image")
+    first = _read_grey(require_cv2(), left[0])
     return StereoSource(
         name=root.name, root=root, layout="folder", left_files=tuple(left), right_files=tuple(right),
         timestamps_s=t, K=K, baseline_m=baseline, cam_T_imu=cam_T_imu,
@@ -699,15 +833,31 @@ def track_source(source: StereoSource, options=None, progress=None):
     ``progress``: optional callable(n_done) after each frame. Only one image pair (and
     the tracker's previous frame) is in memory at a time; the observations are kept
     sparse. Velocities the source does not have are NaN (see the module docstring).
+
+    A recording that cannot give a single track is refused (DatasetError): fewer pairs
+    than ``min_track_length``, or images smaller than the detector's border and block
+    (:meth:`~vislam.core.tracking.TrackerOptions.min_image_size_px`). One that gives few
+    tracks is tracked, with warnings in the statistics (``"warnings"``): few tracks per
+    frame, depths outside the filter's guards, a pair that matches far better with left
+    and right exchanged (:func:`swapped_pair_warnings`), frames the layout skipped.
     """
     from vislam.core.tracking import StereoTracker, TrackerOptions, finish_tracks
 
     options = options or TrackerOptions()
+    if source.n_frames < options.min_track_length:
+        raise DatasetError(f"{_frame_listing(source)}: holds {source.n_frames} image pair"
+                           f"{'s' if source.n_frames != 1 else ''}; expected at least {options.min_track_length} "
+                           f"(min_track_length: tracks seen in fewer frames are left out, so none could be written)")
     tracker = StereoTracker(source.K, source.baseline_m, options)
     frames = []
+    swap_warnings = []
     for t in range(source.n_frames):
         left, right = source.read_pair(t)
+        if t == 0:
+            _check_image_size(source, left, options)
         frames.append(tracker.process(left, right))
+        if t == 0:
+            swap_warnings = swapped_pair_warnings(source, frames[0][0].size, options)
         if progress is not None:
             progress(t + 1)
     observations = finish_tracks(frames, options.min_track_length)
@@ -725,10 +875,52 @@ def track_source(source: StereoSource, options=None, progress=None):
     stats["source"] = str(source.root)
     stats["velocities"] = "given" if source.velocities is not None else f"missing (NaN): {source.velocity_note}"
     stats["options"] = options.to_dict()
-    stats["warnings"] = tracking_warnings(stats) + stereo_depth_warnings(sequence)
+    stats["warnings"] = (list(source.extra.get("notes", ())) + swap_warnings + tracking_warnings(stats)
+                         + stereo_depth_warnings(sequence))
     for warning in stats["warnings"]:
         logger.info("%s: %s", source.root, warning)  # the commands print it as a warning
     return sequence, stats
+
+
+def _frame_listing(source: StereoSource) -> Path:
+    """The file or folder that lists a recording's frames (for messages)."""
+    if source.layout == "euroc":
+        return Path(source.root) / "cam0" / "data.csv"
+    return Path(source.left_files[0]).parent
+
+
+def _check_image_size(source: StereoSource, left: np.ndarray, options) -> None:
+    width, height = options.min_image_size_px()
+    if left.shape[1] < width or left.shape[0] < height:
+        raise DatasetError(f"{source.left_files[0]}: is {left.shape[1]}x{left.shape[0]} px; expected at least "
+                           f"{width}x{height} px (the tracker detects corners border_px = {options.border_px} px "
+                           f"from the border, in blocks of {max(options.block_size_px, 2 * options.affine_radius_px + 1)}"
+                           f" px)")
+
+
+#: A first frame that gives this many times more stereo matches (and at least
+#: MIN_MEAN_TRACKS_PER_FRAME) with its left and right images exchanged is a warning.
+SWAPPED_MATCH_FACTOR = 3.0
+
+
+def swapped_pair_warnings(source: StereoSource, n_given: int, options) -> list[str]:
+    """A warning when frame 0's pair matches far better with left and right exchanged.
+
+    In a rectified pair a point lies further left in the right image (disparity uL - uR >
+    0); with the folders (or cameras) swapped every disparity is negative and only chance
+    matches pass, so the tracks are few and wrong. ``n_given``: the stereo matches of the
+    frame as given; the pair is read and tracked once more with the files exchanged (each
+    rectified as the other camera; one frame: a few tens of milliseconds)."""
+    from vislam.core.tracking import StereoTracker
+
+    left, right = source.read_pair(0, exchanged=True)
+    n_swapped = StereoTracker(source.K, source.baseline_m, options).process(left, right)[0].size
+    if n_swapped >= max(SWAPPED_MATCH_FACTOR * n_given, MIN_MEAN_TRACKS_PER_FRAME):
+        return [(f"{source.left_files[0]} and {source.right_files[0]}: {n_swapped} stereo matches with left and "
+                 f"right exchanged, {n_given} as given: are the left and right images swapped "
+                 f"({Path(source.left_files[0]).parent} should hold the left camera's images)? The tracks are few "
+                 f"and wrong")]
+    return []
 
 
 #: Fewer tracked landmarks per frame on average than this is a warning: a stereo pair of a
