@@ -154,8 +154,13 @@ def test_report_progress_lines_on_stderr(data_dir, tmp_path, capsys):
     assert code == 0
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
-    assert len(lines) == 4  # load, two datasets, write
-    assert all(re.match(r"vislam report: \[\d+/4\] ", line) for line in lines)
+    progress = [line for line in lines if re.match(r"vislam report: \[\d+/4\] ", line)]
+    assert len(progress) == 4  # load, two datasets, write
+    # then the report's notes, one line each: what was left out is said, not only written in report.md
+    notes = lines[len(progress):]
+    assert lines[:len(progress)] == progress and all(line.startswith("vislam report: note: ") for line in notes)
+    assert any("0999.txt: no dataset named 0999.npz" in line for line in notes)
+    assert any("dense: not found" in line for line in notes)
     md = (out / "report.md").read_text()
     assert "section skipped" in md
     assert not table_rows(md, "noise") and not table_rows(md, "moving")

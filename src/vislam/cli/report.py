@@ -107,6 +107,8 @@ def run(args) -> int:
     finally:
         package_logger.setLevel(level)
     if not args.quiet:
+        for note in result.notes:  # a dataset or ground truth left out is in the report, and said here
+            log(f"note: {note}")
         try:
             print(f"{result.markdown_path}\n{result.html_path}\n({len(result.rows)} runs, {len(result.figures)} "
                   f"figures, {result.seconds:.0f} s on {engine.name})", flush=True)
