@@ -19,6 +19,7 @@ from vislam.errors import (
     GeometryError,
     GroundTruthError,
     OutputError,
+    SequenceError,
     VislamError,
 )
 
@@ -58,6 +59,7 @@ __all__ = [
     "ConfigError",
     "DatasetError",
     "EstimationError",
+    "SequenceError",
     "GeometryError",
     "GroundTruthError",
     "OutputError",

@@ -18,6 +18,11 @@ class DatasetError(VislamError):
     """A dataset file is missing, unreadable or malformed."""
 
 
+class SequenceError(DatasetError, ValueError):
+    """A recording built in memory (``Sequence``, ``StereoObservations``, ``Calibration``)
+    breaks their invariants; also a ValueError, which these constructors raised before."""
+
+
 class GroundTruthError(VislamError):
     """A ground-truth trajectory file is missing, unreadable or does not match."""
 

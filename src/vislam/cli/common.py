@@ -21,7 +21,8 @@ from vislam.errors import ConfigError, EstimationError
 
 __all__ = [
     "FLAG_FIELDS", "load_data", "add_filter_arguments", "add_noise_injection_arguments",
-    "add_ground_truth_arguments", "NOISE_FLAGS", "noise_spec_from_args", "ground_truth_from_args",
+    "add_ground_truth_arguments", "NOISE_FLAGS", "noise_spec_from_args", "ground_truth_from_args", "pair_ground_truth",
+    "known_poses_from_args", "frames_seen",
     "options_from_args", "auto_options", "make_progress", "format_summary", "format_evaluation_line",
     "interrupted_message", "finish", "configure_dask_logging", "add_engine_arguments",
     "terminate_as_interrupt", "add_source_arguments", "tracker_options_from_args", "TRACKER_FLAGS",
@@ -235,8 +236,12 @@ def noise_spec_from_args(args):
             message = re.sub(rf"\b{re.escape(field)}\b", flag, message)
         raise ConfigError(message) from None
 
-def ground_truth_from_args(args, sequence):
+def ground_truth_from_args(args, sequence, pair: bool = True):
     """``(TrajectoryFile, info)`` of ``--gt`` checked against ``sequence``, or ``(None, None)``.
+
+    ``pair=False`` reads and checks the file only; :func:`pair_ground_truth` then checks
+    that it covers the frames the filter will see (after the data corrections: a
+    ``timestamp_scale`` changes the frame times a TUM ground truth is matched with).
 
     ``--gt-frame auto`` follows the format's convention (KITTI: left camera, TUM: IMU);
     camera poses are checked against the dataset now and converted, after the run, with
@@ -246,20 +251,97 @@ def ground_truth_from_args(args, sequence):
     """
     if not getattr(args, "gt", None):
         return None, None
-    from vislam.tools.comparison import load_run_ground_truth
-    from vislam.tools.evaluation import resolve_ground_truth_frame
+    from vislam.tools.comparison import ground_truth_pairs
+    from vislam.tools.evaluation import load_ground_truth, resolve_ground_truth_frame
     from vislam.tools.trajectory_io import resolve_gt_format
 
     fmt = resolve_gt_format(args.gt, args.gt_format)
+    source = f"dataset {sequence.source or sequence.name}"
     conversion = resolve_ground_truth_frame(fmt, args.gt_frame, cam_T_imu=sequence.cam_T_imu,
-                                            cam_T_imu_source=f"dataset {sequence.source or sequence.name}",
-                                            ground_truth_path=args.gt)
-    gt = load_run_ground_truth(args.gt, sequence, fmt, conversion.frame)
+                                            cam_T_imu_source=source, ground_truth_path=args.gt)
+    gt = load_ground_truth(args.gt, fmt, conversion.frame, sequence.cam_T_imu, cam_T_imu_source=source)
+    if pair:
+        ground_truth_pairs(gt, sequence)
     source = ("calibration.cam_T_imu of this run (the transform the filter used)" if conversion.frame == "cam"
               else None)
     info = {"path": str(Path(args.gt).resolve()), "format": fmt, "frame": conversion.frame,
             "frame_requested": args.gt_frame, "cam_T_imu_source": source}
     return gt, info
+
+
+def frames_seen(sequence, options):
+    """``sequence`` as the filter will see it: under ``options``' data corrections (a
+    ``timestamp_scale`` changes the frame times)."""
+    if not options.has_data_corrections:
+        return sequence
+    from vislam.core.corrections import apply_corrections
+
+    return apply_corrections(sequence, options)
+
+
+def _frame_times_not_seconds(sequence) -> tuple[float, tuple | None] | None:
+    """(median frame interval, (seconds per unit, unit name) or None) when the frame
+    times of ``sequence`` are not a camera's in seconds, else None."""
+    import numpy as np
+
+    from vislam.core.sequence import CAMERA_FRAME_INTERVAL_S, timestamp_unit_guess
+
+    t = sequence.timestamps_s
+    if t.size < 2:
+        return None
+    interval = float(np.median(np.diff(t)))
+    lo, hi = CAMERA_FRAME_INTERVAL_S
+    return None if lo <= interval <= hi else (interval, timestamp_unit_guess(interval))
+
+
+def _matched_to_frames(check, exc_types, sequence, options, auto_pending: bool):
+    """``check(seen)`` of the frames the filter will see (:func:`frames_seen`); a failure
+    names the fix when the frame times are not in seconds — or, with ``auto_pending``
+    (``--auto``, whose check may scale them, has not run yet), returns ``(None, False)`` for
+    the caller to check again after it. Else ``(check's value, True)``."""
+    seen = frames_seen(sequence, options)
+    try:
+        return check(seen), True
+    except exc_types as exc:
+        odd = _frame_times_not_seconds(seen)
+        if odd is None:
+            raise
+        if auto_pending:
+            return None, False
+        interval, unit = odd
+        if unit is None:
+            raise
+        raise type(exc)(f"{exc}; the recording's frames are {interval:.4g} apart: with time stamps in {unit[1]}, "
+                        f"run with --auto or with timestamp_scale {unit[0]:g} in a --config file") from None
+
+
+def pair_ground_truth(gt, sequence, options, auto_pending: bool = False) -> bool:
+    """Check that the ground truth ``gt`` (of :func:`ground_truth_from_args` with
+    ``pair=False``; None: nothing to check) has a pose for at least 2 of the frames the
+    filter will see (:func:`frames_seen`: time stamps in ns with ``timestamp_scale:
+    1e-9`` are matched in seconds); GroundTruthError otherwise. With ``auto_pending``
+    see :func:`_matched_to_frames`: False means "check again after --auto's check"."""
+    if gt is None:
+        return True
+    from vislam.errors import GroundTruthError
+    from vislam.tools.comparison import ground_truth_pairs
+
+    return _matched_to_frames(lambda seen: ground_truth_pairs(gt, seen), GroundTruthError, sequence, options,
+                              auto_pending)[1]
+
+
+def known_poses_from_args(args, sequence, options, auto_pending: bool = False):
+    """``(poses, done)``: the (T, 4, 4) world_T_imu of ``--poses`` (None without it)
+    matched with the frames the filter will see (:func:`frames_seen`); ``done`` False with
+    ``auto_pending`` when they may match only after --auto's check (see
+    :func:`_matched_to_frames`)."""
+    if not getattr(args, "poses", None):
+        return None, True
+    from vislam.tools.config import load_known_poses
+
+    return _matched_to_frames(lambda seen: load_known_poses(args.poses, seen), ConfigError, sequence, options,
+                              auto_pending)
+
 
 def options_from_args(args, suggestions=None):
     """FilterOptions of defaults < ``suggestions`` (``--auto``) < --config < --robust < flags."""

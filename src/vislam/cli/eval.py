@@ -78,11 +78,17 @@ def run(args) -> int:
         sequence=sequence,
         max_diff_s=args.max_diff,
     )
+    from vislam.tools.outputs import OutputStage
+
+    title = args.title or f"{Path(args.est).name} vs ground truth {Path(args.gt).name}"
+    # both files appear together or not at all (a failed figure leaves no new metrics.json beside an old figure);
+    # the other entries of DIR (e.g. the run folder the estimate comes from) stay as they are
+    with OutputStage(out) as stage:
+        write_metrics_json(result, stage.path(METRICS_FILE))
+        plot_error_over_distance(result, stage.path(FIGURE_FILE), title=title)
+        stage.commit(order=(METRICS_FILE, FIGURE_FILE), remove_stale=())
     metrics_path = out / METRICS_FILE
     figure_path = out / FIGURE_FILE
-    write_metrics_json(result, metrics_path)
-    title = args.title or f"{Path(args.est).name} vs ground truth {Path(args.gt).name}"
-    plot_error_over_distance(result, figure_path, title=title)
     text = format_table(result) + f"\n\nwrote {metrics_path}\nwrote {figure_path}"
     try:
         print(text, flush=True)

@@ -37,10 +37,12 @@ from vislam.cli.common import (  # noqa: F401 (the shared pieces, importable fro
     format_summary,
     ground_truth_from_args,
     interrupted_message,
+    known_poses_from_args,
     load_data,
     make_progress,
     noise_spec_from_args,
     options_from_args,
+    pair_ground_truth,
     tracking_warnings,
 )
 from vislam.core.options import MODES
@@ -170,6 +172,17 @@ def _dataset_record(args, sequence, tracking) -> dict:
     return dataset
 
 
+def _reference_poses(args, sequence, options, auto: bool):
+    """``(poses, gt, gt_info, recheck)``: ``--poses`` and ``--gt``, read and matched with the
+    frames the filter will see (after --config's ``timestamp_scale``) before any work;
+    ``recheck``: match them again after --auto's check, which may scale frame times that
+    are not in seconds."""
+    poses, poses_matched = known_poses_from_args(args, sequence, options, auto_pending=auto)
+    gt, gt_info = ground_truth_from_args(args, sequence, pair=False)  # the file itself
+    paired = pair_ground_truth(gt, sequence, options, auto_pending=auto)
+    return poses, gt, gt_info, auto or not (paired and poses_matched)
+
+
 def _run(args, figures) -> int:
     _check_mode_flags(args)
     # the figure helper imports matplotlib (~0.6 s) while this process imports, loads and
@@ -181,15 +194,14 @@ def _run(args, figures) -> int:
     from vislam.core.sequence import imu_sample_warnings
     from vislam.tools.comparison import evaluate_run, ground_truth_from_start, injected_noise_record, \
         stage_evaluation
-    from vislam.tools.config import load_known_poses
     from vislam.tools.outputs import OutputStage, display_name, method_title, command_start_time, write_run_outputs
 
     start_time = command_start_time() or _COMMAND_START
     options = options_from_args(args)
     noise = noise_spec_from_args(args)
     sequence, tracking = load_data(args, args.out)
-    poses = load_known_poses(args.poses, sequence) if args.poses else None
-    gt, gt_info = ground_truth_from_args(args, sequence)  # checked before any work
+    auto = getattr(args, "auto", False)
+    poses, gt, gt_info, recheck = _reference_poses(args, sequence, options, auto)
     dataset = _dataset_record(args, sequence, tracking)
     extra = {}
     if noise is not None:
@@ -200,12 +212,15 @@ def _run(args, figures) -> int:
         # ASCII: the label also goes into the PLY header
         dataset["label"] = f"{sequence.name} + noise ({describe_noise(noise, seed=False, ascii=True)})"
         extra["injected_noise"] = injected_noise_record(noise, info)
-    if getattr(args, "auto", False):  # check what the filter will see (with any injected noise)
+    if auto:  # check what the filter will see (with any injected noise)
         options, extra["auto"] = auto_options(args, sequence, args.quiet)
     if options.has_data_corrections:
         from vislam.core.corrections import apply_corrections
 
         sequence = apply_corrections(sequence, options)  # a no-op if the estimators apply them again
+    if recheck:  # against the frame times --auto's corrections give
+        pair_ground_truth(gt, sequence, options)
+        poses = known_poses_from_args(args, sequence, options)[0]
 
     stage = OutputStage(args.out)
     close, recorder = (lambda: None), None

@@ -19,9 +19,10 @@ Input, one frame at a time:
   samples 3 finite numbers each within ±:data:`~vislam.core.sequence.MAX_IMU_SAMPLE`
   (:func:`twist`). Called before every ``update`` but the first.
 * ``update(ids, pixels)`` — the stereo observations of the new frame: landmark ids
-  (n,), strictly increasing integers, and pixels (n, 4) ``uL, vL, uR, vR``, finite and
-  within ±:data:`~vislam.core.sequence.MAX_PIXEL_COORD` (:func:`checked_observations`). Returns the :class:`FrameStats` of the last frame
-  finished. The mapping filter also takes the known pose, ``world_T_imu=``.
+  (n,), strictly increasing integers (within int64), and pixels (n, 4) ``uL, vL, uR, vR``,
+  real, finite and within ±:data:`~vislam.core.sequence.MAX_PIXEL_COORD` (:func:`checked_observations`). Returns the :class:`FrameStats` of the last frame
+  finished. The mapping filter also takes the known pose, ``world_T_imu=`` (a finite rigid
+  transform; :func:`checked_world_T_imu` is its check).
 * ``step(frame)`` — both, from a :class:`~vislam.core.sequence.Frame` (no prediction for
   the first frame). Bad input raises :class:`~vislam.errors.ConfigError`; a numerical
   failure raises :class:`~vislam.errors.EstimationError` naming the frame, and the filter
@@ -76,7 +77,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from vislam.core.lie import se3_inverse
+from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.results import LandmarkMap, RunStats
 from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_PIXEL_COORD, MAX_TIME_STEP_S, first_pixel_row_beyond
 from vislam.errors import ConfigError
@@ -84,7 +85,7 @@ from vislam.errors import ConfigError
 logger = logging.getLogger(__name__)
 
 __all__ = ["StepwiseFilter", "FilterDiagnostics", "FrameStats", "FRAME_STAT_FIELDS", "FrameStatsCounter",
-           "LandmarkEstimates", "checked_dt", "checked_observations", "twist"]
+           "LandmarkEstimates", "checked_dt", "checked_observations", "checked_world_T_imu", "checked_frame", "twist"]
 
 #: (ids, p_lm_in_world, rejected) of no landmark: ``last_frozen`` of a step that froze none.
 EMPTY_FROZEN = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=bool))
@@ -318,15 +319,22 @@ def checked_observations(ids, pixels, trusted: bool = False) -> tuple[np.ndarray
     if trusted and isinstance(ids, np.ndarray) and ids.dtype == np.int64 and isinstance(pixels, np.ndarray) \
             and pixels.dtype == np.float64:
         return ids, pixels
-    ids = np.asarray(ids)
+    try:
+        ids = np.asarray(ids)
+    except (TypeError, ValueError, OverflowError):  # e.g. ragged nested lists
+        raise ConfigError(f"update: landmark ids must be integers, (n,); got {ids!r:.80}") from None
+    if np.iscomplexobj(pixels):  # np.asarray(..., float64) would drop the imaginary part with a ComplexWarning
+        raise ConfigError("update: pixels must be real numbers, (n, 4) [uL, vL, uR, vR]; got complex values")
     try:
         pixels = np.asarray(pixels, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ConfigError(f"update: pixels must be numbers, (n, 4) [uL, vL, uR, vR]; got {pixels!r:.80}") from None
     if ids.ndim != 1 or pixels.shape != (ids.shape[0], 4):
         raise ConfigError(f"update: expected landmark ids (n,) and pixels (n, 4), got {ids.shape} and {pixels.shape}")
     if ids.size and not np.issubdtype(ids.dtype, np.integer):
         raise ConfigError(f"update: landmark ids must be integers, got dtype {ids.dtype}")
+    if ids.size and ids.dtype.kind == "u" and int(ids.max()) > np.iinfo(np.int64).max:  # would wrap around
+        raise ConfigError(f"update: landmark ids must be within the int64 range, got {int(ids.max())}")
     ids = ids.astype(np.int64, copy=False)
     if ids.size > 1 and np.any(np.diff(ids) <= 0):
         raise ConfigError("update: landmark ids must be strictly increasing within a frame")
@@ -335,6 +343,35 @@ def checked_observations(ids, pixels, trusted: bool = False) -> tuple[np.ndarray
         raise ConfigError(f"update: pixels must be finite and within ±{MAX_PIXEL_COORD:g}; landmark {ids[row]} has "
                           f"{pixels[row].tolist()} (leave an unobserved landmark out of the frame)")
     return ids, pixels
+
+
+def checked_world_T_imu(world_T_imu) -> np.ndarray:
+    """A known pose given to ``update`` (the mapping filter's ``world_T_imu=``) as a float
+    (4, 4) array: finite and rigid (rotation block, last row ``[0, 0, 0, 1]``, to 1e-6),
+    else ConfigError naming what was given (a NaN pose reached the camera model as
+    "point coordinates must be finite"; a scaled one was used as it was)."""
+    try:
+        T = np.asarray(world_T_imu, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"update: world_T_imu must be a 4x4 rigid transform, got {world_T_imu!r:.80}") from None
+    if T.shape != (4, 4):
+        raise ConfigError(f"update: world_T_imu must be 4x4, got {T.shape}")
+    if not is_rigid_transform(T, tol=1e-6):
+        raise ConfigError(f"update: world_T_imu must be a finite 4x4 rigid transform (rotation block, last row "
+                          f"[0, 0, 0, 1]), got {T.tolist()}")
+    return T
+
+
+def checked_frame(frame):
+    """``frame`` when it has what ``step`` reads of a :class:`~vislam.core.sequence.Frame`
+    (dt_s, the two IMU samples, landmark_ids, pixels), else ConfigError (an
+    AttributeError from inside the filter before)."""
+    missing = [name for name in ("dt_s", "linear_velocity_mps", "angular_velocity_radps", "landmark_ids", "pixels")
+               if not hasattr(frame, name)]
+    if missing:
+        raise ConfigError(f"step: expected a vislam Frame (sequence.frames(), vislam.iter_frames), got "
+                          f"{type(frame).__name__} without {', '.join(missing)}")
+    return frame
 
 
 def twist(linear_velocity, angular_velocity) -> np.ndarray:

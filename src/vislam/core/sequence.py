@@ -19,12 +19,46 @@ from functools import cached_property
 import numpy as np
 
 from vislam.core.camera import StereoCamera
+from vislam.core.options import MAX_LEVER_ARM_M
+from vislam.errors import SequenceError
 
 __all__ = ["StereoObservations", "Sequence", "Frame", "Calibration", "MISSING_PIXEL", "frozen_array", "RepeatMotion",
+           "SequenceError", "rigid_transform_problem",
            "repeat_decision", "predicted_flow_px", "REPEAT_MIN_PREDICTED_FLOW_PX"]
 
 #: Value of all four pixel coordinates where a landmark is not observed (dataset format).
 MISSING_PIXEL = -1.0
+
+
+#: Tolerance of the rotation block of an in-memory ``cam_T_imu`` (|RᵀR − I|, |det R − 1|,
+#: last row): looser than the loader's, it refuses what is not a rigid transform at all
+#: (a scaled rotation, NaN), not rounding.
+_RIGID_TOL = 1e-4
+
+
+def rigid_transform_problem(T, name: str = "cam_T_imu") -> str | None:
+    """What makes ``T`` unfit as the IMU-camera transform (not 4x4, not finite, not rigid,
+    a translation beyond ±:data:`MAX_LEVER_ARM_M`), or None."""
+    T = np.asarray(T)
+    if T.shape != (4, 4):
+        return f"{name} must be 4x4, got shape {T.shape}"
+    if not np.issubdtype(T.dtype, np.number) or np.iscomplexobj(T) or not np.all(np.isfinite(T)):
+        return f"{name} must be a finite 4x4 rigid transform, got {np.asarray(T).tolist()}"
+    T = T.astype(np.float64)
+    R = T[:3, :3]
+    with np.errstate(all="ignore"):  # huge entries: still "not rigid"
+        orth = float(np.max(np.abs(R.T @ R - np.eye(3))))
+        det = float(np.linalg.det(R))
+    if not (orth <= _RIGID_TOL and abs(det - 1.0) <= _RIGID_TOL
+            and np.max(np.abs(T[3] - [0.0, 0.0, 0.0, 1.0])) <= _RIGID_TOL):
+        return (f"{name} is not a rigid transform (max |RᵀR - I| = {orth:.3g}, det R = {det:.6g}, last row "
+                f"{T[3].tolist()}); expected a rotation block and last row [0, 0, 0, 1]")
+    if np.abs(T[:3, 3]).max() > MAX_LEVER_ARM_M:
+        return f"{name} has translation {T[:3, 3].tolist()} (m); expected an IMU-camera lever arm within " \
+               f"±{MAX_LEVER_ARM_M:g} m"
+    return None
+
+
 #: The largest pixel coordinate accepted in an observation (absolute, px): far beyond any
 #: image, and small enough that products of pixels stay finite (1e300 overflowed them).
 MAX_PIXEL_COORD = 1e6
@@ -136,23 +170,23 @@ class StereoObservations:
         object.__setattr__(self, "n_landmarks", int(self.n_landmarks))
         n = self.landmark_ids.shape[0]
         if self.frame_offsets.ndim != 1 or self.frame_offsets.size < 1:
-            raise ValueError("frame_offsets must be a non-empty 1-D array")
+            raise SequenceError("frame_offsets must be a non-empty 1-D array")
         if self.frame_offsets[0] != 0 or self.frame_offsets[-1] != n or np.any(np.diff(self.frame_offsets) < 0):
-            raise ValueError("frame_offsets must start at 0, be non-decreasing and end at len(landmark_ids)")
+            raise SequenceError("frame_offsets must start at 0, be non-decreasing and end at len(landmark_ids)")
         if self.pixels.shape[0] != n:
-            raise ValueError("pixels and landmark_ids differ in length")
+            raise SequenceError("pixels and landmark_ids differ in length")
         row = first_pixel_row_beyond(self.pixels)
         if row is not None:
-            raise ValueError(f"pixels must be finite and within ±{MAX_PIXEL_COORD:g}; observation {row} has "
-                             f"{self.pixels[row].tolist()}")
+            raise SequenceError(f"pixels must be finite and within ±{MAX_PIXEL_COORD:g}; observation {row} has "
+                                f"{self.pixels[row].tolist()}")
         if n and (self.landmark_ids.min() < 0 or self.landmark_ids.max() >= self.n_landmarks):
-            raise ValueError("landmark_ids out of range [0, n_landmarks)")
+            raise SequenceError("landmark_ids out of range [0, n_landmarks)")
         if n > 1:
             same_frame = np.ones(n - 1, dtype=bool)
             inner = self.frame_offsets[1:-1]
             same_frame[inner[(inner > 0) & (inner < n)] - 1] = False
             if np.any(same_frame & (np.diff(self.landmark_ids) <= 0)):
-                raise ValueError("landmark_ids must be strictly increasing within each frame")
+                raise SequenceError("landmark_ids must be strictly increasing within each frame")
 
     @property
     def n_frames(self) -> int:
@@ -214,9 +248,15 @@ class StereoObservations:
         """Build from a (4, M, T) array with -1 (all four coordinates) where not observed."""
         features = np.asarray(features, dtype=np.float64)
         if features.ndim != 3 or features.shape[0] != 4:
-            raise ValueError(f"features must have shape (4, M, T), got {features.shape}")
+            raise SequenceError(f"features must have shape (4, M, T), got {features.shape}")
         _, m, t = features.shape
-        observed = np.any(features != MISSING_PIXEL, axis=0)  # (M, T)
+        missing = features == MISSING_PIXEL
+        observed = ~missing.all(axis=0)  # (M, T)
+        partial = observed & missing.any(axis=0)
+        if partial.any():  # the dataset format marks an unobserved cell with -1 in all four
+            j, k = (int(i) for i in np.argwhere(partial)[0])
+            raise SequenceError(f"features: landmark {j} at frame {k} has [uL, vL, uR, vR] = "
+                                f"{features[:, j, k].tolist()}; expected four pixels or -1 in all four (not observed)")
         frame_idx, lm_idx = np.nonzero(observed.T)  # sorted by frame, then landmark
         pixels = features[:, lm_idx, frame_idx].T
         offsets = np.zeros(t + 1, dtype=np.int64)
@@ -363,9 +403,12 @@ class Calibration:
     cam_T_imu: np.ndarray
 
     def __post_init__(self):
+        if not isinstance(self.camera, StereoCamera):
+            raise SequenceError(f"Calibration: camera must be a StereoCamera, got {type(self.camera).__name__}")
+        problem = rigid_transform_problem(self.cam_T_imu)
+        if problem:
+            raise SequenceError(f"Calibration: {problem}")
         object.__setattr__(self, "cam_T_imu", frozen_array(self.cam_T_imu, np.float64))
-        if self.cam_T_imu.shape != (4, 4):
-            raise ValueError(f"cam_T_imu must be 4x4, got {self.cam_T_imu.shape}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -417,6 +460,11 @@ class Sequence:
         file_cam_T_imu: (4, 4) the recording's own ``cam_T_imu`` when corrections
             replaced it (a ``cam_T_imu`` override, a rotation correction), else None:
             ``cam_T_imu`` is the recording's (see :attr:`recorded_cam_T_imu`).
+
+    The constructor holds the loader's rules (:class:`SequenceError` otherwise): at
+    least one frame, times finite and strictly increasing with no interval beyond
+    :data:`MAX_TIME_STEP_S`, velocities (T, 3) within ±:data:`MAX_IMU_SAMPLE` (NaN: none
+    recorded), ``cam_T_imu`` a finite rigid transform (:func:`rigid_transform_problem`).
     """
 
     name: str
@@ -438,22 +486,57 @@ class Sequence:
         )
         object.__setattr__(self, "cam_T_imu", frozen_array(self.cam_T_imu, np.float64))
         t = self.timestamps_s.shape[0]
+        self._check_timestamps()
         for name in ("linear_velocity_in_imu_mps", "angular_velocity_in_imu_radps"):
             if getattr(self, name).shape != (t, 3):
-                raise ValueError(f"{name} must have shape ({t}, 3), got {getattr(self, name).shape}")
+                raise SequenceError(f"{name} must have shape ({t}, 3), got {getattr(self, name).shape}")
             far = first_sample_beyond(getattr(self, name))  # NaN (no velocities) is not refused here
             if far is not None:
                 k, i = far
-                raise ValueError(f"{name} has {getattr(self, name)[k, i]:.3g} at frame {k}; expected samples "
+                raise SequenceError(f"{name} has {getattr(self, name)[k, i]:.3g} at frame {k}; expected samples "
                                  f"within ±{MAX_IMU_SAMPLE:g}")
         if self.observations.n_frames != t:
-            raise ValueError(f"observations cover {self.observations.n_frames} frames, timestamps {t}")
-        if self.cam_T_imu.shape != (4, 4):
-            raise ValueError("cam_T_imu must be 4x4")
+            raise SequenceError(f"observations cover {self.observations.n_frames} frames, timestamps {t}")
+        if not isinstance(self.camera, StereoCamera):
+            raise SequenceError(f"{self._where}camera must be a StereoCamera, got {type(self.camera).__name__}")
+        problem = rigid_transform_problem(self.cam_T_imu)
+        if problem:
+            raise SequenceError(f"{self._where}{problem}")
         if self.file_cam_T_imu is not None:
             object.__setattr__(self, "file_cam_T_imu", frozen_array(self.file_cam_T_imu, np.float64))
             if self.file_cam_T_imu.shape != (4, 4):
-                raise ValueError("file_cam_T_imu must be 4x4")
+                raise SequenceError("file_cam_T_imu must be 4x4")
+
+    @property
+    def _where(self) -> str:
+        """``"SOURCE: "`` for messages (the file, or the name of an in-memory recording)."""
+        where = self.source or self.name
+        return f"{where}: " if where else ""
+
+    def _check_timestamps(self) -> None:
+        """At least one frame; times finite and strictly increasing, no interval beyond
+        :data:`MAX_TIME_STEP_S` (the loader's rules; a NaN or a step back reached the
+        filters as a bad ``predict`` argument)."""
+        t = self.timestamps_s
+        where = self._where
+        if t.shape[0] == 0:
+            raise SequenceError(f"{where}timestamps_s is empty; a recording needs at least one frame")
+        bad = ~np.isfinite(t)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise SequenceError(f"{where}timestamps_s has {t[i]} at frame {i}; expected finite seconds")
+        with np.errstate(over="ignore", invalid="ignore"):
+            step = np.diff(t)
+        bad = ~(step > 0)
+        if bad.any():
+            i = int(np.argmax(bad)) + 1
+            raise SequenceError(f"{where}timestamps_s is not strictly increasing at frame {i} ({float(t[i])!r} after "
+                                f"{float(t[i - 1])!r}); expected strictly increasing times (s)")
+        long = step > MAX_TIME_STEP_S
+        if long.any():
+            i = int(np.argmax(long)) + 1
+            raise SequenceError(f"{where}timestamps_s has a frame interval of {float(step[i - 1]):.3g} s at frame {i}; "
+                                f"expected at most {MAX_TIME_STEP_S:g} s")
 
     @property
     def n_frames(self) -> int:

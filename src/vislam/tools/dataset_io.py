@@ -52,7 +52,7 @@ from vislam.core.camera import StereoCamera, intrinsics_problem
 from vislam.core.lie import is_rigid_transform, se3_inverse
 from vislam.core.options import MAX_LEVER_ARM_M
 from vislam.core.sequence import MAX_IMU_SAMPLE, MAX_PIXEL_COORD, MAX_TIME_STEP_S, MISSING_PIXEL, Sequence, StereoObservations
-from vislam.errors import DatasetError
+from vislam.errors import DatasetError, OutputError
 from vislam.text import printable
 from vislam.tools.npz import write_npz
 
@@ -159,6 +159,9 @@ def save_sequence(sequence: Sequence, path, compress: bool = True, convention: s
     """
     if convention not in CONVENTIONS:
         raise ValueError(f"unknown key convention {convention!r}; expected one of {sorted(CONVENTIONS)}")
+    path = Path(path)
+    if path.is_dir():
+        raise OutputError(f"{path}: is a directory; expected the path of the .npz file to write")
     keys = CONVENTIONS[convention]
     transform = sequence.cam_T_imu if convention == "report" else sequence.imu_T_cam
     arrays = {
@@ -170,7 +173,10 @@ def save_sequence(sequence: Sequence, path, compress: bool = True, convention: s
         keys["b"]: np.array(sequence.camera.baseline_m),
         keys["transform"]: transform,
     }
-    write_npz(path, arrays, compress=compress)
+    try:
+        write_npz(path, arrays, compress=compress)
+    except OSError as exc:  # e.g. a read-only or full file system (atomic_path removed its temporary file)
+        raise OutputError(f"{path}: cannot write: {exc.strerror or exc}") from None
 
 
 # ----------------------------------------------------------------------------- reading
@@ -835,12 +841,13 @@ class FrameStream:
                         a = a.astype(np.float64).reshape(M, 4)
                         missing = a == MISSING_PIXEL
                         unseen = missing.all(axis=1)
-                        bad = ~np.isfinite(a).all(axis=1) | (missing.any(axis=1) & ~unseen)
+                        # finite and not beyond any image, as load_sequence (1e300 streamed through before)
+                        bad = ~(np.abs(a) <= MAX_PIXEL_COORD).all(axis=1) | (missing.any(axis=1) & ~unseen)
                         if bad.any():
                             j = _first_index(bad)
                             raise reader.error(key, f"landmark {j} at frame {t}: has [uL, vL, uR, vR] = "
-                                               f"{a[j].tolist()}; expected four finite pixels or -1 in all four "
-                                               f"coordinates (not observed)")
+                                               f"{a[j].tolist()}; expected four finite pixels within "
+                                               f"±{MAX_PIXEL_COORD:g} or -1 in all four coordinates (not observed)")
                         seen = ~unseen
                         dt = float(self.timestamps_s[t] - self.timestamps_s[t - 1]) if t > 0 else 0.0
                         yield Frame(t, float(self.timestamps_s[t]), dt, self._linear[t].copy(),

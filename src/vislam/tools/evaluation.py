@@ -456,6 +456,41 @@ def _frame_timestamps(traj: TrajectoryFile, dataset_timestamps, what: str) -> np
     return ts[: len(traj)]
 
 
+def _time(x: float) -> str:
+    """A time stamp for a message: 6 decimals, or 7 significant digits when that is noise."""
+    return f"{x:.6f}" if abs(x) < 1e11 else f"{x:.10g}"
+
+
+def _no_time_match(est: TrajectoryFile, gt: TrajectoryFile, est_ts, gt_ts, max_diff_s: float) -> GroundTruthError:
+    """The error of :func:`associate` when no time stamps match: both ranges, and why if it can tell."""
+    return GroundTruthError(
+        f"{est.path} and {gt.path}: no timestamps match within {max_diff_s:g} s (estimate "
+        f"{_time(est_ts[0])}..{_time(est_ts[-1])} s, ground truth {_time(gt_ts[0])}..{_time(gt_ts[-1])} s)"
+        f"{_time_mismatch_hint(est_ts, gt_ts, est.path, gt.path)}")
+
+
+def _time_mismatch_hint(est_ts: np.ndarray, gt_ts: np.ndarray, est_name, gt_name) -> str:
+    """Why no time stamps match: one side in ms, µs or ns (its frame interval 1e3, 1e6 or
+    1e9 times the other's), or the two ranges apart; "" when neither is evident."""
+    from vislam.core.sequence import TIMESTAMP_UNITS
+
+    def interval(ts):
+        return float(np.median(np.diff(ts))) if ts.size > 1 else float("nan")
+
+    de, dg = interval(est_ts), interval(gt_ts)
+    if de > 0 and dg > 0:
+        for factor, unit in TIMESTAMP_UNITS:
+            for name, mine, other in ((gt_name, dg, de), (est_name, de, dg)):
+                if 0.5 <= mine * factor / other <= 2.0:
+                    return (f"; the frame interval of {name} is {mine / other:.3g} times the other's: are its time "
+                            f"stamps in {unit}? Both must be in seconds")
+    if est_ts[-1] < gt_ts[0] or gt_ts[-1] < est_ts[0]:
+        gap = gt_ts[0] - est_ts[-1] if est_ts[-1] < gt_ts[0] else est_ts[0] - gt_ts[-1]
+        return (f"; the two time ranges do not overlap ({gap:.6g} s apart): is {gt_name} the ground truth of this "
+                f"recording, with time stamps on the same clock?")
+    return ""
+
+
 def associate(
     est: TrajectoryFile,
     gt: TrajectoryFile,
@@ -511,10 +546,7 @@ def associate(
         try:
             traj_est, traj_gt = evo_sync.associate_trajectories(traj_est, traj_gt, max_diff=max_diff_s)
         except EvoException:
-            raise GroundTruthError(
-                f"{est.path} and {gt.path}: no timestamps match within {max_diff_s:g} s (estimate "
-                f"{est_ts[0]:.6f}..{est_ts[-1]:.6f} s, ground truth {gt_ts[0]:.6f}..{gt_ts[-1]:.6f} s)"
-            ) from None
+            raise _no_time_match(est, gt, est_ts, gt_ts, max_diff_s) from None
         for traj in (traj_est, traj_gt):
             if np.any(np.diff(traj.timestamps) <= 0):
                 raise GroundTruthError(

@@ -4,7 +4,9 @@
 * KITTI odometry: the 12 row-major values of the top 3x4 of each pose per line.
 
 Both hold ``world_T_<body>`` poses, one per line. Values are separated by white space;
-blank lines and ``#`` comments are ignored (as evo does).
+blank lines and ``#`` comments are ignored (as evo does). Text is UTF-8 (a byte-order
+mark and CRLF line ends, as Windows editors write, are fine) or, failing that, read as
+Latin-1 (the numbers are ASCII either way); a file with NUL bytes is not text.
 
 Writers are atomic (see :mod:`vislam.tools.atomic`) and write every number with the
 shortest representation that reads back to the same float, so a write -> read round
@@ -193,11 +195,16 @@ def _read_text(path: Path, what: str) -> str:
     if path.is_dir():
         raise GroundTruthError(f"{path}: is a directory ({what} trajectory file expected)")
     try:
-        return path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise GroundTruthError(f"{path}: not a text file ({what} trajectory expected)") from None
+        data = path.read_bytes()
     except OSError as exc:
         raise GroundTruthError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+    if b"\x00" in data:  # a binary file (an .npz, an image): no text has NUL bytes
+        raise GroundTruthError(f"{path}: not a text file ({what} trajectory expected)")
+    try:
+        return data.decode("utf-8-sig")  # (a byte-order mark, as Windows editors write, is dropped)
+    except UnicodeDecodeError:
+        # a legacy 8-bit encoding (e.g. an accented comment): the numbers are ASCII in any of them
+        return data.decode("latin-1")
 
 
 def _data_lines(text: str):
@@ -224,6 +231,18 @@ def _check_positions(path: Path, poses: np.ndarray, lines: np.ndarray) -> np.nda
     return poses
 
 
+def _values(fields: list[str]) -> str:
+    return f"{len(fields)} value" + ("" if len(fields) == 1 else "s")
+
+
+def _separator_hint(fields: list[str]) -> str:
+    """A hint for values separated by something else than white space (a CSV export)."""
+    for sep in (",", ";"):
+        if any(sep in f for f in fields):
+            return f" (separated by white space; this line has {sep!r} between values)"
+    return ""
+
+
 def _short(s: str, n: int = 40) -> str:
     return s if len(s) <= n else s[: n - 3] + "..."
 
@@ -235,7 +254,8 @@ def _parse_table(path: Path, text: str, ncols: int, what: str) -> tuple[np.ndarr
     for lineno, fields in _data_lines(text):
         if len(fields) != ncols:
             raise GroundTruthError(
-                f"{path}: line {lineno}: {len(fields)} values; a {what} trajectory has {ncols} per line"
+                f"{path}: line {lineno}: {_values(fields)}; a {what} trajectory has {ncols} per line"
+                f"{_separator_hint(fields)}"
             )
         try:
             rows.append([float(f) for f in fields])
@@ -279,7 +299,7 @@ def _detect(path: Path, text: str) -> str:
         if len(fields) == 8:
             return "tum"
         raise GroundTruthError(
-            f"{path}: line {lineno}: {len(fields)} values; expected 12 (KITTI) or 8 (TUM) per line"
+            f"{path}: line {lineno}: {_values(fields)}; expected 12 (KITTI) or 8 (TUM) per line{_separator_hint(fields)}"
         )
     raise GroundTruthError(f"{path}: empty file (no poses; TUM or KITTI trajectory expected)")
 
