@@ -172,6 +172,54 @@ def test_pose_and_frame_checks_of_the_contract():
         checked_frame("frame")
 
 
+def test_a_pose_rounded_to_four_decimals_is_made_rigid():
+    """A pose file printed with four decimals is rigid only to ~1e-4: the pose is used with
+    the nearest rotation (mapping with such --poses was refused at first by the check)."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("zyx", [0.7, 0.1, -0.2]).as_matrix()
+    T[:3, 3] = (3.1, 0.69, -0.006)
+    rounded = np.round(T, 4)
+    out = checked_world_T_imu(rounded)
+    np.testing.assert_allclose(out[:3, :3].T @ out[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(out, T, atol=1e-4)
+    assert np.linalg.det(out[:3, :3]) == pytest.approx(1.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("cls", [vislam.LocalizationFilter, vislam.MappingFilter, vislam.SlamFilter, SmootherFilter])
+def test_every_filter_checks_what_step_and_update_are_given(drive, cls):
+    """step('x') was an AttributeError inside every filter; the localization filter counted
+    float ids and NaN pixels without a look; the mapping filter used a scaled pose."""
+    f = cls(drive.sequence.calibration)
+    with pytest.raises(ConfigError, match="^step: expected a vislam Frame"):
+        f.step("frame")
+    with pytest.raises(ConfigError, match="^step: expected a vislam Frame"):
+        list(vislam.final_poses(cls(drive.sequence.calibration), [1, 2]))
+    with pytest.raises(ConfigError, match="^update: landmark ids must be integers"):
+        f.update([1.5], [[1.0, 2.0, 3.0, 4.0]])
+    with pytest.raises(ConfigError, match="^update: pixels must be finite"):
+        f.update([1], [[np.nan, 2.0, 3.0, 4.0]])
+    assert f.frame_index == -1  # nothing was counted
+    if cls is vislam.MappingFilter:
+        frame = next(iter(drive.sequence.frames()))
+        with pytest.raises(ConfigError, match="^update: world_T_imu must be a finite 4x4 rigid transform"):
+            f.update(frame.landmark_ids, frame.pixels, world_T_imu=2.0 * np.eye(4))
+        assert f.frame_index == -1
+        f.update(frame.landmark_ids, frame.pixels, world_T_imu=np.eye(4))
+        assert f.frame_index == 0
+
+
+def test_run_names_the_arguments_it_was_given(drive):
+    """vislam.run with a file name or an options dict was an AttributeError."""
+    with pytest.raises(ConfigError, match="^run: expected a vislam Sequence .* got str"):
+        vislam.run("drive.npz", "slam")
+    with pytest.raises(ConfigError, match="^run: options must be a FilterOptions .* got dict"):
+        vislam.run(drive.sequence, "slam", {"velocity_noise_mps": 0.5})
+    with pytest.raises(ConfigError, match="^unknown mode"):
+        vislam.run(drive.sequence, ["slam"])
+
+
 # ----------------------------------------------------------------------------- trajectory files
 
 

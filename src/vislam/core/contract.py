@@ -347,19 +347,32 @@ def checked_observations(ids, pixels, trusted: bool = False) -> tuple[np.ndarray
 
 def checked_world_T_imu(world_T_imu) -> np.ndarray:
     """A known pose given to ``update`` (the mapping filter's ``world_T_imu=``) as a float
-    (4, 4) array: finite and rigid (rotation block, last row ``[0, 0, 0, 1]``, to 1e-6),
-    else ConfigError naming what was given (a NaN pose reached the camera model as
-    "point coordinates must be finite"; a scaled one was used as it was)."""
+    (4, 4) array: finite and rigid (rotation block, last row ``[0, 0, 0, 1]``) to
+    :data:`KNOWN_POSE_RIGID_TOL`, else ConfigError naming what was given (a NaN pose
+    reached the camera model as "point coordinates must be finite"; a scaled one was used
+    as it was). A rotation block that is rigid only to that tolerance (a pose file printed
+    with four decimals) is replaced by the nearest rotation (SVD)."""
     try:
         T = np.asarray(world_T_imu, dtype=np.float64)
     except (TypeError, ValueError):
         raise ConfigError(f"update: world_T_imu must be a 4x4 rigid transform, got {world_T_imu!r:.80}") from None
     if T.shape != (4, 4):
         raise ConfigError(f"update: world_T_imu must be 4x4, got {T.shape}")
-    if not is_rigid_transform(T, tol=1e-6):
+    if is_rigid_transform(T, tol=1e-9):
+        return T
+    if not is_rigid_transform(T, tol=KNOWN_POSE_RIGID_TOL):
         raise ConfigError(f"update: world_T_imu must be a finite 4x4 rigid transform (rotation block, last row "
-                          f"[0, 0, 0, 1]), got {T.tolist()}")
-    return T
+                          f"[0, 0, 0, 1], to {KNOWN_POSE_RIGID_TOL:g}), got {T.tolist()}")
+    U, _, Vt = np.linalg.svd(T[:3, :3])  # det(U Vᵀ) = +1 here: det R is within the tolerance of 1
+    out = T.copy()
+    out[:3, :3] = U @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+#: How far from rigid a known pose may be (|RᵀR − I|, |det R − 1|, last row): the
+#: rounding of a pose file printed with four decimals passes, a scaled or sheared matrix not.
+KNOWN_POSE_RIGID_TOL = 1e-3
 
 
 def checked_frame(frame):

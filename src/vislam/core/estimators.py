@@ -50,8 +50,14 @@ def run(sequence: Sequence, mode: str, options: FilterOptions | None = None, pro
     are applied to ``sequence`` first; a stepwise filter fed by hand gets frames of an
     already corrected sequence (``vislam.apply_corrections(seq, options).frames()``).
     """
+    if not isinstance(sequence, Sequence):
+        raise ConfigError(f"run: expected a vislam Sequence (vislam.load_sequence(path), or a simulated drive's "
+                          f".sequence), got {type(sequence).__name__}")
+    if options is not None and not isinstance(options, FilterOptions):
+        raise ConfigError(f"run: options must be a FilterOptions (FilterOptions.from_dict for a dict), got "
+                          f"{type(options).__name__}")
     options = options or FilterOptions()
-    if mode not in MODES:
+    if not isinstance(mode, str) or mode not in MODES:
         raise ConfigError(f"unknown mode {mode!r}; expected one of {', '.join(MODES)}")
     # the options' data corrections (biases, conventions, calibration; see vislam check);
     # a no-op without any, or when the caller already applied them

@@ -52,6 +52,8 @@ from vislam.core.contract import (
 )
 from vislam.core.contract import checked_dt as _check_dt
 from vislam.core.contract import checked_observations as _observations
+from vislam.core.contract import checked_frame as _frame
+from vislam.core.contract import checked_world_T_imu as _known_pose
 from vislam.core.contract import twist as _twist
 from vislam.core import kernels
 from vislam.core.bookkeeping import IdTable, MapBuilder, RepeatDetector, TrackTable, admitted_count, in_sorted
@@ -179,9 +181,10 @@ class LocalizationFilter(StepwiseFilter):
         self.imu_T_world, self._pose_cov, _ = predict_pose(self.imu_T_world, self._pose_cov, tau, u, self._W, du=du)
 
     def update(self, ids=None, pixels=None) -> FrameStats:
-        """Count the frame (IMU localization uses no observations)."""
+        """Count the frame (IMU localization uses no observations; given ones are checked
+        as every filter checks them, then counted)."""
+        n = 0 if ids is None and pixels is None else int(_observations(ids, pixels)[0].size)
         self.frame_index += 1
-        n = 0 if ids is None else int(np.size(ids))
         self.stats.frames += 1
         self.stats.frames_processed += 1
         self.stats.observations_total += n
@@ -191,6 +194,7 @@ class LocalizationFilter(StepwiseFilter):
 
     def step(self, frame: Frame) -> FrameStats:
         """Predict over ``frame.dt_s`` (not for the first frame), then count the frame."""
+        _frame(frame)
         if self.frame_index >= 0:
             self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
         return self.update(frame.landmark_ids, frame.pixels)
@@ -281,6 +285,7 @@ class MappingFilter(_FrozenLog, StepwiseFilter):
 
     def step(self, frame: Frame, world_T_imu: np.ndarray | None = None) -> FrameStats:
         """Predict (dead reckoning; not for the first frame), then update with the frame's observations."""
+        _frame(frame)
         if self.frame_index >= 0:
             self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
         return self.update(frame.landmark_ids, frame.pixels, world_T_imu=world_T_imu)
@@ -289,13 +294,11 @@ class MappingFilter(_FrozenLog, StepwiseFilter):
         """Update the tracks of the landmarks observed in this frame, end the others,
         start new ones. ``world_T_imu``: the known pose of this frame (else dead reckoning)."""
         ids_seen, z = _observations(ids, pixels)
+        if world_T_imu is not None:
+            world_T_imu = _known_pose(world_T_imu)  # finite and rigid (checked before the frame counts)
         self.frame_index += 1
         t = self.frame_index
         self._delta.begin()
-        if world_T_imu is not None:
-            world_T_imu = np.asarray(world_T_imu, dtype=np.float64)
-            if world_T_imu.shape != (4, 4):
-                raise ConfigError(f"update: world_T_imu must be 4x4, got {world_T_imu.shape}")
         self._pose_given = world_T_imu
         self._frozen_parts = []
         imu_T_world = self.imu_T_world
@@ -622,6 +625,7 @@ class SlamFilter(_FrozenLog, StepwiseFilter):
         frames that are complete, ``stall_max_delay_frames`` behind this one, and
         :attr:`world_T_imu` predicts the pose up to this frame. Returns the statistics
         of the last frame updated."""
+        _frame(frame)
         if self._stall_buffer is None:
             return self._step_now(frame)
         buf = self._stall_buffer

@@ -75,6 +75,7 @@ import numpy as np
 from vislam.core.bookkeeping import MapBuilder, RepeatDetector, admitted_count, sorted_positions
 from vislam.core.contract import FrameStats, FrameStatsCounter, LandmarkEstimates, StepwiseFilter
 from vislam.core.contract import checked_dt as _check_dt
+from vislam.core.contract import checked_frame as _frame
 from vislam.core.contract import checked_observations as _observations
 from vislam.core.contract import twist as _twist
 from vislam.core.lie import se3_inverse
@@ -432,6 +433,7 @@ class SmootherFilter(StepwiseFilter):
     # --- the frame --------------------------------------------------------------------
     def step(self, frame: Frame) -> FrameStats:
         """:meth:`predict` with the frame's velocity sample (not for the first frame), then :meth:`update`."""
+        _frame(frame)
         if self.frame_index >= 0:
             self.predict(frame.dt_s, frame.linear_velocity_mps, frame.angular_velocity_radps)
         return self.update(frame.landmark_ids, frame.pixels)
