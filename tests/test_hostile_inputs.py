@@ -371,3 +371,24 @@ def test_degenerate_recordings_run_in_every_mode_without_warnings(degenerate_fil
         assert summary["frames_processed"] == summary["frames"] and not summary["partial"]
         if name == "no_observations" and mode != "localization":  # said, not silent
             assert any("no observation was used" in w for w in summary["warnings"])
+
+
+def test_check_suggests_only_what_a_run_can_take(drive, tmp_path, capsys):
+    """Frames 1 µs apart made check suggest velocity_scale 99590, beyond the option's range:
+    `--auto` then stopped on a legal file with an options error. The suggestion is dropped
+    (its finding says why), and the run goes on with the rest."""
+    from vislam.core.check import check_sequence
+
+    seq = drive.sequence
+    fast = seq.replace(timestamps_s=seq.timestamps_s * 1e-5)
+    result = check_sequence(fast)
+    vislam.FilterOptions.from_dict(result.suggested)  # every suggestion is a valid option
+    assert "velocity_scale" not in result.suggested
+    scale = next(f for f in result.findings if f.code == "velocity-scale")
+    assert "is not suggested (suggested: velocity_scale must be in (0, 1000]" in scale.message
+    assert any(n.startswith("velocity_scale ") and "not suggested" in n for n in result.notes)
+    path = tmp_path / "fast.npz"
+    save_sequence(fast, path)
+    proc = in_process(capsys, "run", path, "--auto", "--out", tmp_path / "out", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "out" / "summary.json").is_file()

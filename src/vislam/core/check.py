@@ -76,8 +76,10 @@ the verdict and writes check.json and suggested.yaml.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -1020,8 +1022,35 @@ class _Check:
     def merge(self, found: Analysis) -> None:
         self.est.update(found.estimates)
         self.findings.extend(found.findings)
-        self.suggested.update(found.suggested)
         self.notes.extend(found.notes)
+        for key, value in found.suggested.items():
+            problem = self._unusable(key, value)
+            if problem:  # its finding still says what was found, and why nothing is suggested
+                self.notes.append(f"{key} {value!r} not suggested: {problem}")
+                logger.info("check of %s: %s %r not suggested: %s", self.sequence.name, key, value, problem)
+                self.suggested.pop(key, None)
+                self.findings = [dataclasses.replace(f, message=re.sub(
+                    rf"run with the suggested {key}\b[^;]*", f"{key} {value!r} is not suggested ({problem})",
+                    f.message)) for f in self.findings]
+            else:
+                self.suggested[key] = value
+
+    def _unusable(self, key: str, value) -> str | None:
+        """Why a run could not take this suggestion with those before it, or None: a value
+        beyond its option's range (a velocity factor of 1e5 from frames 1 µs apart), or data
+        corrections that together refuse this recording (a time offset as long as a
+        two-frame recording) — ``--auto`` would stop with an options error on a legal file."""
+        from vislam.core.options import DATA_CORRECTION_FIELDS
+        from vislam.errors import ConfigError
+
+        values = {**self.suggested, key: value}
+        try:
+            options = FilterOptions.from_dict(values, source="suggested")
+            if key in DATA_CORRECTION_FIELDS and key != "timestamp_scale":  # (the sequence here is in seconds)
+                apply_corrections(self.sequence, options.replace(timestamp_scale=1.0))
+        except ConfigError as exc:
+            return str(exc)
+        return None
 
 
 def check_sequence(sequence: Sequence, options: CheckOptions | None = None,
