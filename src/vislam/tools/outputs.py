@@ -738,7 +738,7 @@ def write_demo_outputs(stage: OutputStage, slam: RunResult, localization: RunRes
     name = str(dataset.get("label") or dataset.get("name") or slam.sequence_name)
     curves = [
         TrajectoryCurve(true_world_T_imu, "ground truth", color="0.25", linestyle="-", linewidth=3.2, zorder=2,
-                        mark_ends=False),
+                        mark_ends=False, ground_truth=True),  # the simulator's: from the filters' start pose
         TrajectoryCurve(localization.world_T_imu, "IMU localization (dead reckoning)", color="tab:orange",
                         linestyle="--", linewidth=1.4, zorder=3, mark_ends=False),
         TrajectoryCurve(slam.world_T_imu, "SLAM estimate", color="tab:blue", linewidth=1.6, zorder=4),
