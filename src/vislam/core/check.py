@@ -88,6 +88,7 @@ import numpy as np
 from vislam.core.corrections import apply_corrections
 from vislam.core.lie import se3_exp, se3_inverse, so3_exp
 from vislam.core.options import FilterOptions
+from vislam.core.results import JOB_LIMITS, longest_run
 from vislam.core.rigs import match_known_rig, swapped_translation
 from vislam.core.sequence import (CAMERA_FRAME_INTERVAL_S, Sequence, StereoObservations, imu_samples_beyond_limits,
                                   timestamp_unit_guess)
@@ -1093,8 +1094,15 @@ def _analyse_observations(run: _Check) -> Analysis:
     disparity = obs.pixels[:, 0] - obs.pixels[:, 2]
     repeated, evidence = obs.repeat_evidence(run.sequence.repeat_motion())
     duplicated = obs.duplicate_mask()
+    # the longest run of frames whose observations (nearly all) repeat: a frozen camera or tracker
+    per_frame = np.diff(obs.frame_offsets)
+    frame_of = np.repeat(np.arange(per_frame.size), per_frame)
+    repeats = np.bincount(frame_of[repeated], minlength=per_frame.size)
+    frozen = (per_frame > 0) & (repeats >= JOB_LIMITS["frozen_share"] * per_frame)
+    seconds, first, last = longest_run(frozen, run.sequence.timestamps_s)
     return Analysis({"observations": {
         "total": obs.n_observations, "repeated": int(np.count_nonzero(repeated)),
+        "repeated_longest_run": {"seconds": seconds, "first_frame": first, "last_frame": last},
         "repeated_share": float(np.mean(repeated)) if obs.n_observations else 0.0, "repeat_evidence": evidence,
         "non_positive_disparity": int(np.count_nonzero(disparity <= 0)),
         "negative_disparity": int(np.count_nonzero(disparity < 0)),
@@ -1601,14 +1609,22 @@ def _analyse_tracker_artifacts(run: _Check) -> Analysis:
     """The findings on what ``vislam info`` counts: exact repeats, non-positive disparity."""
     o = run.est["observations"]
     rep_share = o["repeated_share"]
-    npd = o["non_positive_disparity"]
+    frozen = o["repeated_longest_run"]
+    text = (f"{o['repeated']} observations ({100 * rep_share:.1f} %) repeat the previous frame's pixels exactly "
+            f"(tracker artifact: there the tracks restart on a new point; "
+            f"{describe_repeat_evidence(o['repeat_evidence'])})")
+    if frozen["seconds"] > JOB_LIMITS["frozen_s"]:
+        repeated = Finding("repeated-observations", "WARN",
+                           f"{text}; in frames {frozen['first_frame']}-{frozen['last_frame']} "
+                           f"({frozen['seconds']:.1f} s) nearly every observation repeats (expected single frames, "
+                           f"at most {JOB_LIMITS['frozen_s']:g} s): the images or the tracker froze while the IMU "
+                           f"moved; those frames give the filters no visual update")
+    else:
+        repeated = Finding("repeated-observations", "OK", text + ": " + (
+            "the filters handle them by default (repeated_observations: auto); nothing to do" if rep_share > 0
+            else "nothing to do"))
     return Analysis(findings=[
-        Finding("repeated-observations", "OK",
-                f"{o['repeated']} observations ({100 * rep_share:.1f} %) repeat the previous frame's "
-                f"pixels exactly (tracker artifact: there the tracks restart on a new point; "
-                f"{describe_repeat_evidence(o['repeat_evidence'])}): "
-                + ("the filters handle them by default (repeated_observations: auto); nothing to do"
-                   if rep_share > 0 else "nothing to do")),
+        repeated,
         _disparity_finding(o, run.opts),
         _stereo_rows_finding(o, run.opts),
         stereo_depth_finding(run.est["stereo_depth"], run.opts),

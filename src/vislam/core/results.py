@@ -12,7 +12,7 @@ from vislam.core.options import FilterOptions
 from vislam.core.sequence import CAMERA_FRAME_INTERVAL_S, timestamp_unit_guess
 
 __all__ = ["CalibrationUsed", "LandmarkMap", "RunStats", "RunResult", "LANDMARK_OK", "LANDMARK_REJECTED",
-           "model_fit_warnings", "FIT_LIMITS", "run_warnings", "JOB_LIMITS"]
+           "model_fit_warnings", "FIT_LIMITS", "run_warnings", "JOB_LIMITS", "longest_run"]
 
 #: Landmark status codes in :attr:`LandmarkMap.status`.
 LANDMARK_OK = 0
@@ -266,8 +266,11 @@ def model_fit_warnings(result: "RunResult") -> list[str]:
 #: files' statistics: gated 8-24 %, landmarks rejected 31-61 % (61 %: sparse 0027).
 #: Mapping on the dead-reckoned poses of the noisy dense files warns, truthfully: 53-61 %
 #: of its observations are gated, 84-86 % of its landmarks rejected (sparse: 13-16 %, 34-49 %).
+#: ``frozen_share``/``frozen_s``: frames whose observations (at least that share) repeat
+#: the previous frame's pixels exactly, for longer than that: the shared files' tracker
+#: repeats them in single frames (at most 0.1 s in a row, SLAM and smoother).
 JOB_LIMITS = {"no_update_s": 6.0, "gap_factor": 5.0, "gap_min_s": 0.5,
-              "smoother_gated_share": 0.5, "smoother_rejected_share": 0.8}
+              "smoother_gated_share": 0.5, "smoother_rejected_share": 0.8, "frozen_share": 0.9, "frozen_s": 1.0}
 
 _VISUAL_MODES = ("mapping", "slam", "smoother")
 
@@ -322,7 +325,13 @@ def _gap_warnings(result: "RunResult") -> list[str]:
 def _longest_without(used: np.ndarray, t: np.ndarray) -> tuple[float, int, int]:
     """(seconds, first frame, last frame) of the longest run of frames (after frame 0)
     without a used observation; (0, -1, -1) when there is none."""
-    none = np.r_[False, np.asarray(used[1:]) == 0, False]
+    return longest_run(np.asarray(used) == 0, t)
+
+
+def longest_run(mask: np.ndarray, t: np.ndarray) -> tuple[float, int, int]:
+    """(seconds from the frame before it to its last, first frame, last frame) of the
+    longest run of frames (after frame 0) where ``mask`` holds; (0, -1, -1) when none."""
+    none = np.r_[False, np.asarray(mask[1:], dtype=bool), False]
     edges = np.flatnonzero(np.diff(none.astype(np.int8)))
     if edges.size == 0:
         return 0.0, -1, -1
@@ -357,6 +366,17 @@ def run_warnings(result: "RunResult") -> list[str]:
                        f"{JOB_LIMITS['no_update_s']:g} s): {cause}; the "
                        f"{'map' if result.mode == 'mapping' else 'trajectory'} there is "
                        f"{'from the given poses only' if result.mode == 'mapping' else 'dead reckoning'}")
+    if visual and result.frame_stats is not None and "repeated" in result.frame_stats:
+        obs = np.asarray(result.frame_stats["observations"])
+        repeats = np.asarray(result.frame_stats["repeated"])
+        frozen = (obs > 0) & (repeats >= JOB_LIMITS["frozen_share"] * obs)
+        seconds, first, last = longest_run(frozen, np.asarray(result.timestamps_s, dtype=np.float64))
+        if seconds > JOB_LIMITS["frozen_s"]:
+            out.append(f"frames {first}-{last} ({seconds:.1f} s): {int(repeats[first:last + 1].sum())} of "
+                       f"{int(obs[first:last + 1].sum())} observations repeat the previous frame's pixels exactly "
+                       f"while the IMU moves (expected single frames, at most {JOB_LIMITS['frozen_s']:g} s): did the "
+                       f"images or the tracker freeze? Those frames give no visual update; `vislam check DATA` counts "
+                       f"the repeats")
     if result.mode in ("mapping", "smoother") and s.observations_used > 0:
         tested = s.observations_used + s.observations_gated
         limit = FIT_LIMITS["gated_share"] if result.mode == "mapping" else JOB_LIMITS["smoother_gated_share"]
