@@ -90,7 +90,8 @@ from vislam.core.lie import se3_exp, se3_inverse, so3_exp
 from vislam.core.options import FilterOptions
 from vislam.core.results import JOB_LIMITS, longest_run
 from vislam.core.rigs import match_known_rig, swapped_translation
-from vislam.core.sequence import (CAMERA_FRAME_INTERVAL_S, Sequence, StereoObservations, imu_samples_beyond_limits,
+from vislam.core.sequence import (CAMERA_FRAME_INTERVAL_S, Sequence, StereoObservations, imu_dropouts,
+                                  imu_samples_beyond_limits,
                                   timestamp_unit_guess)
 
 __all__ = ["CheckOptions", "Finding", "CheckResult", "Analysis", "ANALYSES", "check_sequence", "estimate_white_noise",
@@ -1186,6 +1187,10 @@ def _imu_samples_finding(u: np.ndarray) -> Finding:
         return Finding("imu-samples", "WARN", f"all {n} angular-rate samples are exactly 0: no gyro reads that; were "
                                               "the rates missing and filled with zeros? The filters would see a "
                                               "vehicle that never turns")
+    dropouts = imu_dropouts(u[:, :3], u[:, 3:])
+    if dropouts:
+        return Finding("imu-samples", "WARN", "; ".join(dropouts) + ": no sensor reads that; the filters would "
+                                              "take them for the vehicle's motion")
     return Finding("imu-samples", "OK", "the velocity samples vary; nothing to do")
 
 

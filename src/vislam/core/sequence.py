@@ -23,6 +23,7 @@ from vislam.core.options import MAX_LEVER_ARM_M
 from vislam.errors import SequenceError
 
 __all__ = ["StereoObservations", "Sequence", "Frame", "Calibration", "MISSING_PIXEL", "frozen_array", "RepeatMotion",
+           "imu_dropouts", "IMU_DROPOUT_MIN_SAMPLES",
            "SequenceError", "rigid_transform_problem",
            "repeat_decision", "predicted_flow_px", "REPEAT_MIN_PREDICTED_FLOW_PX"]
 
@@ -130,12 +131,48 @@ def imu_samples_beyond_limits(linear_velocity_mps: np.ndarray, angular_velocity_
     return out
 
 
+#: Consecutive IMU samples exactly 0 in all six channels, or exactly the sample before them,
+#: this many or more: no sensor reads that (its noise alone moves the last digits), a dropout
+#: filled with zeros or a held last value does (:func:`imu_dropouts`). The shared files
+#: have not one exact zero or exact repeat.
+IMU_DROPOUT_MIN_SAMPLES = 10
+
+
+def _runs(mask: np.ndarray, min_length: int) -> list[tuple[int, int]]:
+    """(first, last) index of each run of True in ``mask`` at least ``min_length`` long."""
+    edges = np.flatnonzero(np.diff(np.r_[0, np.asarray(mask, dtype=np.int8), 0]))
+    return [(int(a), int(b) - 1) for a, b in zip(edges[0::2], edges[1::2]) if b - a >= min_length]
+
+
+def imu_dropouts(linear_velocity_mps: np.ndarray, angular_velocity_radps: np.ndarray,
+                 min_samples: int = IMU_DROPOUT_MIN_SAMPLES) -> list[str]:
+    """Stretches of at least ``min_samples`` IMU samples exactly 0 in all six channels, or
+    exactly the sample before them (a dropout filled with zeros, a sensor that held its last
+    value): one phrase per kind (how many stretches, the first ones' samples); empty when
+    none. A recording whose samples are all 0 is one stretch."""
+    u = np.hstack([np.asarray(linear_velocity_mps, dtype=np.float64).reshape(-1, 3),
+                   np.asarray(angular_velocity_radps, dtype=np.float64).reshape(-1, 3)])
+    zero = np.all(u == 0.0, axis=1)
+    held = np.r_[False, np.all(u[1:] == u[:-1], axis=1)] & ~zero
+    out = []
+    for mask, what in ((zero, "exactly 0 in all six channels (a dropout filled with zeros?)"),
+                       (held, "exactly the sample before them in all six channels (a sensor that held its last "
+                              "value?)")):
+        runs = _runs(mask, min_samples)
+        if runs:
+            listed = ", ".join(f"{a}-{b}" for a, b in runs[:3]) + (", ..." if len(runs) > 3 else "")
+            out.append(f"{len(runs)} stretch(es) of {min_samples} or more IMU samples {what}: frames {listed}")
+    return out
+
+
 def imu_sample_warnings(linear_velocity_mps: np.ndarray, angular_velocity_radps: np.ndarray) -> list[str]:
-    """Warnings (one line each) of a run for the samples of :func:`imu_samples_beyond_limits`:
-    the filters integrate them as they are."""
+    """Warnings (one line each) of a run for the samples of :func:`imu_samples_beyond_limits`
+    and :func:`imu_dropouts`: the filters integrate them as they are."""
     return [f"{phrase}: not a vehicle's motion — another unit, or corrupt samples; the filters integrate them as "
             f"they are (`vislam check DATA` measures the units)"
-            for phrase in imu_samples_beyond_limits(linear_velocity_mps, angular_velocity_radps)]
+            for phrase in imu_samples_beyond_limits(linear_velocity_mps, angular_velocity_radps)] + [
+        f"{phrase}: the filters integrate them as they are, so the trajectory there follows them, not the "
+        f"vehicle (`vislam check DATA`)" for phrase in imu_dropouts(linear_velocity_mps, angular_velocity_radps)]
 
 
 def frozen_array(a, dtype=None) -> np.ndarray:
