@@ -91,7 +91,7 @@ from vislam.core.options import FilterOptions
 from vislam.core.results import JOB_LIMITS, longest_run
 from vislam.core.rigs import match_known_rig, swapped_translation
 from vislam.core.sequence import (CAMERA_FRAME_INTERVAL_S, Sequence, StereoObservations, imu_dropouts,
-                                  imu_samples_beyond_limits,
+                                  imu_samples_beyond_limits, imu_spikes,
                                   timestamp_unit_guess)
 
 __all__ = ["CheckOptions", "Finding", "CheckResult", "Analysis", "ANALYSES", "check_sequence", "estimate_white_noise",
@@ -1207,7 +1207,7 @@ def _analyse_imu_noise(run: _Check) -> Analysis:
                    [_imu_samples_finding(u)])
     default_v = base.velocity_noise_per_axis
     default_w = base.angular_noise_per_axis
-    corrupt = imu_samples_beyond_limits(u[:, :3], u[:, 3:])
+    corrupt = imu_samples_beyond_limits(u[:, :3], u[:, 3:]) + imu_spikes(u[:, :3], u[:, 3:])
     if corrupt:  # one such sample makes the white noise look huge: say what it is, suggest no noise
         out.findings.append(Finding(
             "noise", "WARN", f"{'; '.join(corrupt)}: not a vehicle's motion — another unit, or corrupt samples; "
