@@ -188,3 +188,19 @@ def test_a_tuned_imu_noise_far_above_the_signal_white_noise_gets_a_note():
                                          {"velocity_noise_mps": [0.51, 0.52, 0.50],
                                           "angular_noise_radps": [0.05, 0.048, 0.047]}, opts)
     assert dense_like == []
+
+
+def test_a_recording_in_nanoseconds_fails_with_the_unit_named(tmp_path, capsys):
+    """Every candidate fails on frames 1e8 apart; the error said only "every candidate
+    failed: ... not positive definite". It names the unit and the fix now, and the fix works."""
+    seq = simulate_drive(SimulationOptions(n_frames=40, seed=1, facade_density_per_m=0.5)).sequence
+    path = tmp_path / "ns.npz"
+    save_sequence(seq.replace(timestamps_s=seq.timestamps_s * 1e9), path)
+    code = main(["tune", str(path), "--out", str(tmp_path / "t"), "--sequential", "--frames", "20", "--grid", "2"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "every candidate failed" in err and "with time stamps in nanoseconds, add timestamp_scale 1e-09" in err
+    config = tmp_path / "ts.yaml"
+    config.write_text("timestamp_scale: 1.0e-9\n")
+    assert main(["tune", str(path), "--config", str(config), "--out", str(tmp_path / "t2"), "--sequential",
+                 "--frames", "20", "--grid", "2"]) == 0

@@ -279,21 +279,6 @@ def frames_seen(sequence, options):
     return apply_corrections(sequence, options)
 
 
-def _frame_times_not_seconds(sequence) -> tuple[float, tuple | None] | None:
-    """(median frame interval, (seconds per unit, unit name) or None) when the frame
-    times of ``sequence`` are not a camera's in seconds, else None."""
-    import numpy as np
-
-    from vislam.core.sequence import CAMERA_FRAME_INTERVAL_S, timestamp_unit_guess
-
-    t = sequence.timestamps_s
-    if t.size < 2:
-        return None
-    interval = float(np.median(np.diff(t)))
-    lo, hi = CAMERA_FRAME_INTERVAL_S
-    return None if lo <= interval <= hi else (interval, timestamp_unit_guess(interval))
-
-
 def _matched_to_frames(check, exc_types, sequence, options, auto_pending: bool):
     """``check(seen)`` of the frames the filter will see (:func:`frames_seen`); a failure
     names the fix when the frame times are not in seconds — or, with ``auto_pending``
@@ -303,7 +288,9 @@ def _matched_to_frames(check, exc_types, sequence, options, auto_pending: bool):
     try:
         return check(seen), True
     except exc_types as exc:
-        odd = _frame_times_not_seconds(seen)
+        from vislam.core.sequence import frame_times_not_seconds
+
+        odd = frame_times_not_seconds(seen.timestamps_s)
         if odd is None:
             raise
         if auto_pending:

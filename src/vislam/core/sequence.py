@@ -23,7 +23,7 @@ from vislam.core.options import MAX_LEVER_ARM_M
 from vislam.errors import SequenceError
 
 __all__ = ["StereoObservations", "Sequence", "Frame", "Calibration", "MISSING_PIXEL", "frozen_array", "RepeatMotion",
-           "imu_dropouts", "IMU_DROPOUT_MIN_SAMPLES", "imu_spikes", "imu_spike_mask",
+           "imu_dropouts", "IMU_DROPOUT_MIN_SAMPLES", "imu_spikes", "imu_spike_mask", "frame_times_not_seconds",
            "SequenceError", "rigid_transform_problem",
            "repeat_decision", "predicted_flow_px", "REPEAT_MIN_PREDICTED_FLOW_PX"]
 
@@ -78,6 +78,17 @@ def timestamp_unit_guess(dt: float, frame_interval_s: tuple[float, float] = CAME
     or None."""
     lo, hi = frame_interval_s
     return next(((factor, name) for factor, name in TIMESTAMP_UNITS if lo <= dt * factor <= hi), None)
+
+
+def frame_times_not_seconds(timestamps_s) -> tuple[float, tuple | None] | None:
+    """(median frame interval, :func:`timestamp_unit_guess` of it) when the frame times are
+    not a camera's in seconds (outside :data:`CAMERA_FRAME_INTERVAL_S`), else None."""
+    t = np.asarray(timestamps_s, dtype=np.float64)
+    if t.size < 2:
+        return None
+    interval = float(np.median(np.diff(t)))
+    lo, hi = CAMERA_FRAME_INTERVAL_S
+    return None if lo <= interval <= hi else (interval, timestamp_unit_guess(interval))
 
 
 #: The largest IMU sample component accepted at all (m/s and rad/s): far beyond any unit

@@ -192,7 +192,14 @@ def run_tune(source, engine=None, base: Mapping[str, Any] | None = None, frames:
     best = search.best
     scores = search.history()
     if best is None:
-        raise EstimationError(f"{source}: every candidate failed; first error: {scores[0].error if scores else '?'}")
+        from vislam.core.sequence import frame_times_not_seconds
+
+        odd = frame_times_not_seconds(sequence.timestamps_s)
+        hint = "" if odd is None or odd[1] is None else (
+            f"; the recording's frames are {odd[0]:.4g} apart: with time stamps in {odd[1][1]}, add "
+            f"timestamp_scale {odd[1][0]:g} to the base options (--config), or run `vislam check DATA`")
+        raise EstimationError(f"{source}: every candidate failed; first error: "
+                              f"{scores[0].error if scores else '?'}{hint}")
     notes = []
     for name, (lo, hi) in ((n, getattr(search.space, n)) for n in TUNED_FIELDS):
         value = best.candidate.to_dict()[name]
