@@ -677,3 +677,24 @@ def test_rows_that_disagree_are_an_error(clean_check):
     pixels[:, 3] = pixels[:, 1] + 20.0
     finding = check_sequence(_with_pixels(seq, pixels), FAST).finding("stereo-rows")
     assert finding.severity == "ERROR" and "100.0 %" in finding.message and "median 20 px" in finding.message
+
+
+def test_rotation_significance_accounts_for_the_few_blocks_of_a_short_recording():
+    """The rotation's covariance is a sandwich summed over blocks of 7 frames; on a 4-s
+    recording (6 blocks) it is too small, and χ²(3) called 2 of 10 clean simulated drives
+    off by 2.2-3.5° (WARN, which --auto applies). Hotelling's threshold for that many
+    blocks keeps them OK; a 2.8° error on a 30-s drive is still found, and a long
+    recording's threshold is close to χ²(3)."""
+    from vislam.core.check import _CHI2_3DOF_99, _cluster_threshold
+
+    for seed in (0, 2):  # the two false WARNs
+        seq = simulate_drive(SimulationOptions(n_frames=40, seed=seed)).sequence
+        rotation = {f.code: f for f in check_sequence(seq).findings}["imu-camera-rotation"]
+        assert rotation.severity == "OK", rotation.message
+    seq = simulate_drive(SimulationOptions(n_frames=300, seed=1)).sequence
+    turned = seq.cam_T_imu.copy()
+    turned[:3, :3] = so3_exp(np.radians([0.0, 2.0, 2.0])) @ turned[:3, :3]
+    rotation = {f.code: f for f in check_sequence(seq.replace(cam_T_imu=turned)).findings}["imu-camera-rotation"]
+    assert rotation.severity == "WARN", rotation.message
+    assert _CHI2_3DOF_99 < _cluster_threshold(3, 158) < 1.06 * _CHI2_3DOF_99  # a 1100-frame drive
+    assert _cluster_threshold(3, 3) == float("inf")
