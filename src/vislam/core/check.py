@@ -88,7 +88,7 @@ import numpy as np
 from vislam.core.corrections import apply_corrections
 from vislam.core.lie import se3_exp, se3_inverse, so3_exp
 from vislam.core.options import FilterOptions
-from vislam.core.results import JOB_LIMITS, longest_run
+from vislam.core.results import JOB_LIMITS, frozen_stretch
 from vislam.core.rigs import match_known_rig, swapped_translation
 from vislam.core.sequence import (CAMERA_FRAME_INTERVAL_S, Sequence, StereoObservations, imu_dropouts,
                                   imu_samples_beyond_limits, imu_spikes,
@@ -1102,11 +1102,8 @@ def _analyse_observations(run: _Check) -> Analysis:
     repeated, evidence = obs.repeat_evidence(run.sequence.repeat_motion())
     duplicated = obs.duplicate_mask()
     # the longest run of frames whose observations (nearly all) repeat: a frozen camera or tracker
-    per_frame = np.diff(obs.frame_offsets)
-    frame_of = np.repeat(np.arange(per_frame.size), per_frame)
-    repeats = np.bincount(frame_of[repeated], minlength=per_frame.size)
-    frozen = (per_frame > 0) & (repeats >= JOB_LIMITS["frozen_share"] * per_frame)
-    seconds, first, last = longest_run(frozen, run.sequence.timestamps_s)
+    repeats = np.bincount(obs.frame_index[repeated], minlength=obs.n_frames)
+    seconds, first, last = frozen_stretch(obs.counts_per_frame(), repeats, run.sequence.timestamps_s)
     return Analysis({"observations": {
         "total": obs.n_observations, "repeated": int(np.count_nonzero(repeated)),
         "repeated_longest_run": {"seconds": seconds, "first_frame": first, "last_frame": last},

@@ -9,10 +9,11 @@ import numpy as np
 
 from vislam.core.lie import se3_inverse
 from vislam.core.options import FilterOptions
-from vislam.core.sequence import CAMERA_FRAME_INTERVAL_S, timestamp_unit_guess
+from vislam.core.sequence import CAMERA_FRAME_INTERVAL_S, frame_times_not_seconds, true_runs
 
 __all__ = ["CalibrationUsed", "LandmarkMap", "RunStats", "RunResult", "LANDMARK_OK", "LANDMARK_REJECTED",
-           "model_fit_warnings", "FIT_LIMITS", "run_warnings", "JOB_LIMITS", "longest_run"]
+           "model_fit_warnings", "FIT_LIMITS", "run_warnings", "JOB_LIMITS", "longest_run",
+           "frozen_stretch"]
 
 #: Landmark status codes in :attr:`LandmarkMap.status`.
 LANDMARK_OK = 0
@@ -282,13 +283,11 @@ def _frames(t: np.ndarray, indices) -> str:
 def _timestamp_warnings(result: "RunResult") -> list[str]:
     """A median frame interval outside a camera's (time stamps not in seconds?)."""
     t = np.asarray(result.timestamps_s, dtype=np.float64)
-    if t.size < 3:
+    odd = frame_times_not_seconds(t) if t.size >= 3 else None
+    if odd is None or not odd[0] > 0:  # (a NaN interval too)
         return []
-    dt = float(np.median(np.diff(t)))
+    dt, guess = odd
     lo, hi = CAMERA_FRAME_INTERVAL_S
-    if not np.isfinite(dt) or dt <= 0 or lo <= dt <= hi:
-        return []
-    guess = timestamp_unit_guess(dt)
     cause = (f"if the time stamps are in {guess[1]}, run with --auto or with timestamp_scale {guess[0]:g} in a "
              f"--config file (`vislam check DATA` measures it)" if guess else
              "the time stamps are not a frame clock in seconds, nor in ms, µs or ns (`vislam check DATA`)")
@@ -322,23 +321,26 @@ def _gap_warnings(result: "RunResult") -> list[str]:
     return out
 
 
-def _longest_without(used: np.ndarray, t: np.ndarray) -> tuple[float, int, int]:
-    """(seconds, first frame, last frame) of the longest run of frames (after frame 0)
-    without a used observation; (0, -1, -1) when there is none."""
-    return longest_run(np.asarray(used) == 0, t)
-
-
 def longest_run(mask: np.ndarray, t: np.ndarray) -> tuple[float, int, int]:
     """(seconds from the frame before it to its last, first frame, last frame) of the
     longest run of frames (after frame 0) where ``mask`` holds; (0, -1, -1) when none."""
-    none = np.r_[False, np.asarray(mask[1:], dtype=bool), False]
-    edges = np.flatnonzero(np.diff(none.astype(np.int8)))
-    if edges.size == 0:
+    runs = true_runs(np.r_[False, np.asarray(mask[1:], dtype=bool)])
+    if not runs:
         return 0.0, -1, -1
-    starts, ends = edges[0::2] + 1, edges[1::2]  # frames [start, end] without (none[k] is frame k)
+    starts, ends = np.array(runs).T
     seconds = t[ends] - t[starts - 1]
     i = int(np.argmax(seconds))
     return float(seconds[i]), int(starts[i]), int(ends[i])
+
+
+def frozen_stretch(observations: np.ndarray, repeats: np.ndarray, t: np.ndarray) -> tuple[float, int, int]:
+    """:func:`longest_run` of the frames whose observations (``observations`` per frame,
+    at least one) repeat the previous frame's pixels (``repeats`` per frame) in at least
+    the share ``JOB_LIMITS["frozen_share"]``: frozen images or tracker when it lasts
+    longer than ``JOB_LIMITS["frozen_s"]`` (the run's warning and check's finding)."""
+    observations, repeats = np.asarray(observations), np.asarray(repeats)
+    frozen = (observations > 0) & (repeats >= JOB_LIMITS["frozen_share"] * observations)
+    return longest_run(frozen, np.asarray(t, dtype=np.float64))
 
 
 def run_warnings(result: "RunResult") -> list[str]:
@@ -357,7 +359,7 @@ def run_warnings(result: "RunResult") -> list[str]:
                    f"{what}: run `vislam check DATA`")
     elif visual and result.frame_stats is not None and "used" in result.frame_stats:
         t = np.asarray(result.timestamps_s, dtype=np.float64)
-        seconds, first, last = _longest_without(result.frame_stats["used"], t)
+        seconds, first, last = longest_run(np.asarray(result.frame_stats["used"]) == 0, t)
         if seconds > JOB_LIMITS["no_update_s"]:
             seen = int(np.sum(result.frame_stats["observations"][first:last + 1]))
             cause = (f"the recording has no observations there" if seen == 0 else
@@ -369,8 +371,7 @@ def run_warnings(result: "RunResult") -> list[str]:
     if visual and result.frame_stats is not None and "repeated" in result.frame_stats:
         obs = np.asarray(result.frame_stats["observations"])
         repeats = np.asarray(result.frame_stats["repeated"])
-        frozen = (obs > 0) & (repeats >= JOB_LIMITS["frozen_share"] * obs)
-        seconds, first, last = longest_run(frozen, np.asarray(result.timestamps_s, dtype=np.float64))
+        seconds, first, last = frozen_stretch(obs, repeats, result.timestamps_s)
         if seconds > JOB_LIMITS["frozen_s"]:
             out.append(f"frames {first}-{last} ({seconds:.1f} s): {int(repeats[first:last + 1].sum())} of "
                        f"{int(obs[first:last + 1].sum())} observations repeat the previous frame's pixels exactly "

@@ -24,6 +24,7 @@ from vislam.errors import SequenceError
 
 __all__ = ["StereoObservations", "Sequence", "Frame", "Calibration", "MISSING_PIXEL", "frozen_array", "RepeatMotion",
            "imu_dropouts", "IMU_DROPOUT_MIN_SAMPLES", "imu_spikes", "imu_spike_mask", "frame_times_not_seconds",
+           "true_runs",
            "SequenceError", "rigid_transform_problem",
            "repeat_decision", "predicted_flow_px", "REPEAT_MIN_PREDICTED_FLOW_PX"]
 
@@ -149,7 +150,7 @@ def imu_samples_beyond_limits(linear_velocity_mps: np.ndarray, angular_velocity_
 IMU_DROPOUT_MIN_SAMPLES = 10
 
 
-def _runs(mask: np.ndarray, min_length: int) -> list[tuple[int, int]]:
+def true_runs(mask: np.ndarray, min_length: int = 1) -> list[tuple[int, int]]:
     """(first, last) index of each run of True in ``mask`` at least ``min_length`` long."""
     edges = np.flatnonzero(np.diff(np.r_[0, np.asarray(mask, dtype=np.int8), 0]))
     return [(int(a), int(b) - 1) for a, b in zip(edges[0::2], edges[1::2]) if b - a >= min_length]
@@ -169,7 +170,7 @@ def imu_dropouts(linear_velocity_mps: np.ndarray, angular_velocity_radps: np.nda
     for mask, what in ((zero, "exactly 0 in all six channels (a dropout filled with zeros?)"),
                        (held, "exactly the sample before them in all six channels (a sensor that held its last "
                               "value?)")):
-        runs = _runs(mask, min_samples)
+        runs = true_runs(mask, min_samples)
         if runs:
             listed = ", ".join(f"{a}-{b}" for a, b in runs[:3]) + (", ..." if len(runs) > 3 else "")
             out.append(f"{len(runs)} stretch(es) of {min_samples} or more IMU samples {what}: frames {listed}")
