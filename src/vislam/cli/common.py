@@ -22,7 +22,7 @@ from vislam.errors import ConfigError, EstimationError
 __all__ = [
     "FLAG_FIELDS", "load_data", "add_filter_arguments", "add_noise_injection_arguments",
     "add_ground_truth_arguments", "NOISE_FLAGS", "noise_spec_from_args", "ground_truth_from_args", "pair_ground_truth",
-    "known_poses_from_args", "frames_seen",
+    "known_poses_from_args",
     "options_from_args", "auto_options", "make_progress", "format_summary", "format_evaluation_line",
     "interrupted_message", "finish", "configure_dask_logging", "add_engine_arguments",
     "terminate_as_interrupt", "add_source_arguments", "tracker_options_from_args", "TRACKER_FLAGS",
@@ -269,22 +269,15 @@ def ground_truth_from_args(args, sequence, pair: bool = True):
     return gt, info
 
 
-def frames_seen(sequence, options):
-    """``sequence`` as the filter will see it: under ``options``' data corrections (a
-    ``timestamp_scale`` changes the frame times)."""
-    if not options.has_data_corrections:
-        return sequence
+def _matched_to_frames(check, exc_types, sequence, options, auto_pending: bool):
+    """``check(seen)`` of the frames the filter will see (``apply_corrections``: a
+    ``timestamp_scale`` changes the frame times); a failure names the fix when the frame
+    times are not in seconds — or, with ``auto_pending`` (``--auto``, whose check may
+    scale them, has not run yet), returns ``(None, False)`` for the caller to check again
+    after it. Else ``(check's value, True)``."""
     from vislam.core.corrections import apply_corrections
 
-    return apply_corrections(sequence, options)
-
-
-def _matched_to_frames(check, exc_types, sequence, options, auto_pending: bool):
-    """``check(seen)`` of the frames the filter will see (:func:`frames_seen`); a failure
-    names the fix when the frame times are not in seconds — or, with ``auto_pending``
-    (``--auto``, whose check may scale them, has not run yet), returns ``(None, False)`` for
-    the caller to check again after it. Else ``(check's value, True)``."""
-    seen = frames_seen(sequence, options)
+    seen = apply_corrections(sequence, options)  # (sequence itself without corrections)
     try:
         return check(seen), True
     except exc_types as exc:
@@ -305,7 +298,7 @@ def _matched_to_frames(check, exc_types, sequence, options, auto_pending: bool):
 def pair_ground_truth(gt, sequence, options, auto_pending: bool = False) -> bool:
     """Check that the ground truth ``gt`` (of :func:`ground_truth_from_args` with
     ``pair=False``; None: nothing to check) has a pose for at least 2 of the frames the
-    filter will see (:func:`frames_seen`: time stamps in ns with ``timestamp_scale:
+    filter will see (:func:`_matched_to_frames`: time stamps in ns with ``timestamp_scale:
     1e-9`` are matched in seconds); GroundTruthError otherwise. With ``auto_pending``
     see :func:`_matched_to_frames`: False means "check again after --auto's check"."""
     if gt is None:
@@ -319,7 +312,7 @@ def pair_ground_truth(gt, sequence, options, auto_pending: bool = False) -> bool
 
 def known_poses_from_args(args, sequence, options, auto_pending: bool = False):
     """``(poses, done)``: the (T, 4, 4) world_T_imu of ``--poses`` (None without it)
-    matched with the frames the filter will see (:func:`frames_seen`); ``done`` False with
+    matched with the frames the filter will see (:func:`_matched_to_frames`); ``done`` False with
     ``auto_pending`` when they may match only after --auto's check (see
     :func:`_matched_to_frames`)."""
     if not getattr(args, "poses", None):
