@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from vislam.errors import ConfigError, EstimationError
+from vislam.signals import replaced_handler
 
 __all__ = [
     "FLAG_FIELDS", "load_data", "add_filter_arguments", "add_noise_injection_arguments",
@@ -537,12 +538,5 @@ def terminate_as_interrupt():
     def handler(signum, frame):
         raise KeyboardInterrupt
 
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread
+    with replaced_handler(signal.SIGTERM, handler):
         yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)

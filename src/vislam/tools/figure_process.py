@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from vislam.signals import replaced_handler
+
 __all__ = ["FigureProcess"]
 
 logger = logging.getLogger(__name__)
@@ -275,15 +277,11 @@ def _sigint_held():
     back during an import), and the interrupt is delivered to the previous handler when
     the block is left. Only in the main thread (where handlers live); elsewhere a no-op."""
     noted = []
+    previous = None
     try:
-        previous = signal.signal(signal.SIGINT, lambda signum, frame: noted.append(signum))
-    except ValueError:  # not the main thread
-        yield
-        return
-    try:
-        yield
+        with replaced_handler(signal.SIGINT, lambda signum, frame: noted.append(signum)) as previous:
+            yield
     finally:
-        signal.signal(signal.SIGINT, previous)
         if noted:
             if callable(previous):
                 previous(signal.SIGINT, None)
