@@ -23,7 +23,7 @@ from vislam.signals import replaced_handler
 __all__ = [
     "FLAG_FIELDS", "load_data", "add_filter_arguments", "add_noise_injection_arguments",
     "add_ground_truth_arguments", "NOISE_FLAGS", "noise_spec_from_args", "ground_truth_from_args", "pair_ground_truth",
-    "known_poses_from_args",
+    "known_poses_from_args", "reference_poses_from_args",
     "options_from_args", "auto_options", "make_progress", "format_summary", "format_evaluation_line",
     "interrupted_message", "finish", "configure_dask_logging", "add_engine_arguments",
     "terminate_as_interrupt", "add_source_arguments", "tracker_options_from_args", "TRACKER_FLAGS",
@@ -322,6 +322,17 @@ def known_poses_from_args(args, sequence, options, auto_pending: bool = False):
 
     return _matched_to_frames(lambda seen: load_known_poses(args.poses, seen), ConfigError, sequence, options,
                               auto_pending)
+
+
+def reference_poses_from_args(args, sequence, options, auto: bool):
+    """``(poses, gt, gt_info, recheck)``: ``--poses`` and ``--gt``, read and matched with the
+    frames the filter will see (after --config's ``timestamp_scale``) before any work;
+    ``recheck``: match them again (:func:`pair_ground_truth`, :func:`known_poses_from_args`)
+    after --auto's check, which may scale frame times that are not in seconds."""
+    poses, poses_matched = known_poses_from_args(args, sequence, options, auto_pending=auto)
+    gt, gt_info = ground_truth_from_args(args, sequence, pair=False)  # the file itself
+    paired = pair_ground_truth(gt, sequence, options, auto_pending=auto)
+    return poses, gt, gt_info, auto or not (paired and poses_matched)
 
 
 def options_from_args(args, suggestions=None):

@@ -24,12 +24,12 @@ from vislam.cli.common import (
     auto_options,
     add_ground_truth_arguments,
     add_noise_injection_arguments,
-    ground_truth_from_args,
     interrupted_message,
     make_progress,
     noise_spec_from_args,
     options_from_args,
     pair_ground_truth,
+    reference_poses_from_args,
 )
 from vislam.errors import EstimationError
 
@@ -138,8 +138,8 @@ def run(args) -> int:
     noise = noise_spec_from_args(args)
     data = Path(args.data)
     sequence, tracking = load_data(args, args.out)
-    gt, gt_info = ground_truth_from_args(args, sequence, pair=False)  # the file; its frames as the filters see them:
-    paired = pair_ground_truth(gt, sequence, options, auto_pending=getattr(args, "auto", False))  # (see vislam run)
+    # the ground truth, matched with the frames the filters will see (see vislam run)
+    _, gt, gt_info, recheck = reference_poses_from_args(args, sequence, options, getattr(args, "auto", False))
     noise_info = auto = None
     if noise is not None:  # injected once, here, so that --auto checks what the methods will see
         from vislam.core.noise import inject_noise
@@ -151,7 +151,7 @@ def run(args) -> int:
         from vislam.core.corrections import apply_corrections
 
         sequence = apply_corrections(sequence, options)  # camera ground truth: converted with each run's calibration
-    if not paired or getattr(args, "auto", False):  # the frame times --auto's corrections give
+    if recheck:  # against the frame times --auto's corrections give
         pair_ground_truth(gt, sequence, options)
     dataset = dataset_record(sequence, data)  # the file's cam_T_imu; the one used is in each summary's calibration
 

@@ -43,6 +43,7 @@ from vislam.cli.common import (  # noqa: F401 (the shared pieces, importable fro
     noise_spec_from_args,
     options_from_args,
     pair_ground_truth,
+    reference_poses_from_args,
     tracking_warnings,
 )
 from vislam.core.options import MODES
@@ -172,17 +173,6 @@ def _dataset_record(args, sequence, tracking) -> dict:
     return dataset
 
 
-def _reference_poses(args, sequence, options, auto: bool):
-    """``(poses, gt, gt_info, recheck)``: ``--poses`` and ``--gt``, read and matched with the
-    frames the filter will see (after --config's ``timestamp_scale``) before any work;
-    ``recheck``: match them again after --auto's check, which may scale frame times that
-    are not in seconds."""
-    poses, poses_matched = known_poses_from_args(args, sequence, options, auto_pending=auto)
-    gt, gt_info = ground_truth_from_args(args, sequence, pair=False)  # the file itself
-    paired = pair_ground_truth(gt, sequence, options, auto_pending=auto)
-    return poses, gt, gt_info, auto or not (paired and poses_matched)
-
-
 def _run(args, figures) -> int:
     _check_mode_flags(args)
     # the figure helper imports matplotlib (~0.6 s) while this process imports, loads and
@@ -201,7 +191,7 @@ def _run(args, figures) -> int:
     noise = noise_spec_from_args(args)
     sequence, tracking = load_data(args, args.out)
     auto = getattr(args, "auto", False)
-    poses, gt, gt_info, recheck = _reference_poses(args, sequence, options, auto)
+    poses, gt, gt_info, recheck = reference_poses_from_args(args, sequence, options, auto)
     dataset = _dataset_record(args, sequence, tracking)
     extra = {}
     if noise is not None:
